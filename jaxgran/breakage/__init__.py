@@ -1,0 +1,1 @@
+"""Particle breakage: criteria, subset separation, replacement."""

@@ -1,0 +1,122 @@
+"""The ``jaxgran`` command: run a scene, redraw figures, print environment information.
+
+    jaxgran run deposit [--out DIR] [--set key=value ...] [--quick] [--vtk] [--no-progress]
+    jaxgran plot runs/deposit/run.h5 [--out DIR]
+    jaxgran info
+    jaxgran scenes
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _enable_x64(flag: bool) -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", flag)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="jaxgran", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run_p = sub.add_parser("run", help="run a scene and write summary.json, run.h5, figures")
+    run_p.add_argument("scene", help="scene name (see `jaxgran scenes`)")
+    run_p.add_argument("--out", type=Path, default=None, help="output folder (runs/<scene>)")
+    run_p.add_argument(
+        "--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+        help="override a configuration value (repeatable)",
+    )
+    run_p.add_argument("--quick", action="store_true", help="small, fast version")
+    run_p.add_argument("--vtk", action="store_true", help="also write VTK files for ParaView")
+    run_p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run_p.add_argument(
+        "--float32", action="store_true", help="run in float32 (default float64)"
+    )
+
+    plot_p = sub.add_parser("plot", help="redraw the figures of a run.h5")
+    plot_p.add_argument("path", type=Path)
+    plot_p.add_argument("--out", type=Path, default=None)
+    plot_p.add_argument("--vtk", action="store_true", help="also write VTK files")
+
+    sub.add_parser("info", help="versions, devices, precision")
+    sub.add_parser("scenes", help="list the scenes")
+
+    args = parser.parse_args(argv)
+    if args.command == "run":
+        return _run(args)
+    if args.command == "plot":
+        return _plot(args)
+    if args.command == "info":
+        return _info()
+    if args.command == "scenes":
+        from .scenes import SCENES
+
+        for name, mod in SCENES.items():
+            doc = (mod.__doc__ or "").strip().split("\n")[0]
+            print(f"{name:24s} {doc}")
+        return 0
+    return 2
+
+
+def _run(args) -> int:
+    import dataclasses
+
+    _enable_x64(not args.float32)
+    from .scenes import SCENES
+    from .scenes.base import apply_overrides, dumps, parse_sets
+
+    if args.scene not in SCENES:
+        print(
+            f"unknown scene {args.scene!r}; available: {', '.join(SCENES)}", file=sys.stderr
+        )
+        return 2
+    mod = SCENES[args.scene]
+    cfg = mod.Config()
+    try:
+        if args.quick:
+            cfg = dataclasses.replace(cfg, **mod.QUICK)
+        cfg = apply_overrides(cfg, parse_sets(args.sets))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = args.out or Path("runs") / args.scene
+    summary = mod.run(cfg, out, progress=not args.no_progress, vtk=args.vtk)
+    print(dumps(summary))
+    print(f"outputs in {out}/")
+    return 0
+
+
+def _plot(args) -> int:
+    from . import io, plot
+
+    if not args.path.exists():
+        print(f"error: {args.path} does not exist", file=sys.stderr)
+        return 2
+    run = io.read_run(args.path)
+    out = args.out or args.path.parent
+    for p in plot.plot_run(run, out):
+        print(p)
+    if args.vtk:
+        for p in io.write_vtk(out / "vtk" / "frame", run):
+            print(p)
+    return 0
+
+
+def _info() -> int:
+    import jax
+
+    from . import __version__
+
+    print(f"jaxgran {__version__}")
+    print(f"jax {jax.__version__}, backend {jax.default_backend()}")
+    print(f"devices: {jax.devices()}")
+    print(f"x64 enabled: {jax.config.jax_enable_x64}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

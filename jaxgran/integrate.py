@@ -1,0 +1,170 @@
+"""Time integration: one DEM step as a pure function, and the time-step limit.
+
+Velocity Verlet (kick-drift-kick) for translation and the same half-step scheme for rotation
+(equivalent to the leap-frog of paper 002 §2.1 with velocities known at whole steps).
+Velocity-dependent forces (damping, tangential spring increments) use the half-step
+velocities. The scheme is second order, and for contact forces that balance torque it
+conserves linear and angular momentum to round-off.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .contact import pair_forces, wall_forces
+from .partition import build_pairs, needs_rebuild
+from .state import (
+    ERR_NAN,
+    ERR_SKIN_EXCEEDED,
+    WALL_SERVO,
+    WALL_VELOCITY,
+    Grid,
+    Params,
+    Particles,
+    SimState,
+    Walls,
+    replace,
+)
+
+
+def critical_time_step(particles: Particles, params: Params) -> float:
+    """Stability limit of the explicit scheme (s) for a two-body contact.
+
+    A pair of equal bodies on a spring K_n oscillates at ``w^2 = 2 K_n / m``; rotation adds an
+    effective mass ``I / l^2`` (l = bounding radius). Verlet is stable for ``w dt < 2``
+    (PHYSICS §D), so ``dt_crit = sqrt(2 m_min / K_n)`` with ``m_min = min(m, I/l^2)`` over
+    active particles. Several contacts stiffen a particle (up to ~4-6 K_n in a packing), which
+    is why :func:`stable_time_step` takes a safety factor well below 1.
+    """
+    act = np.asarray(particles.active)
+    if not act.any():
+        raise ValueError("no active particle: cannot choose a time step")
+    m = np.asarray(particles.mass)[act]
+    inertia = np.asarray(particles.inertia)[act]
+    ell = np.asarray(particles.bound_radius)[act]
+    m_rot = np.minimum(m, inertia / ell**2)
+    k = float(params.normal_stiffness)
+    return float(np.sqrt(2.0 * m_rot.min() / k))
+
+
+def stable_time_step(particles: Particles, params: Params, safety: float = 0.15) -> float:
+    """Recommended time step (s): ``safety * critical_time_step``."""
+    if not 0 < safety <= 1:
+        raise ValueError(f"safety factor must be in (0, 1], got {safety}")
+    return safety * critical_time_step(particles, params)
+
+
+def check_time_step(particles: Particles, params: Params) -> None:
+    """Raise ValueError if ``params.dt`` exceeds the stability limit."""
+    dt = float(params.dt)
+    crit = critical_time_step(particles, params)
+    if dt > crit:
+        raise ValueError(
+            f"time step dt={dt:.3e} s exceeds the stability limit {crit:.3e} s of the stiffest "
+            f"contact (K_n={float(params.normal_stiffness):.3e} N/m); use "
+            f"dt <= {0.15 * crit:.3e} s (jaxgran.integrate.stable_time_step) or lower K_n"
+        )
+
+
+def wall_velocity(walls: Walls, thickness: Array) -> Array:
+    """Velocity of every wall for the coming step (m/s).
+
+    Servo walls move along their normal so that the compressive stress the particles exert,
+    ``-F . n / (length * thickness)``, approaches ``target_stress``: ``v = g (target - stress)``,
+    capped at ``max_speed``.
+    """
+    stress = -jnp.sum(walls.force * walls.normal, axis=-1) / (walls.length * thickness)
+    speed = jnp.clip(
+        walls.servo_gain * (walls.target_stress - stress), -walls.max_speed, walls.max_speed
+    )
+    servo = speed[:, None] * walls.normal
+    moving = walls.mode == WALL_VELOCITY
+    v = jnp.where(moving[:, None], walls.vel, 0.0)
+    return jnp.where((walls.mode == WALL_SERVO)[:, None], servo, v)
+
+
+def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
+    """Advance one time step. Returns the new state and the error bits of this step."""
+    p = state.particles
+    dt = params.dt
+    free = p.active & ~p.fixed
+    inv_m = jnp.where(free, 1.0 / p.mass, 0.0)
+    inv_i = jnp.where(free, 1.0 / p.inertia, 0.0)
+
+    # kick (half) + drift
+    vel = p.vel + 0.5 * dt * p.force * inv_m[:, None]
+    omega = p.omega + 0.5 * dt * p.torque * inv_i
+    pos = jnp.where(p.active[:, None], p.pos + dt * vel, p.pos)
+    angle = jnp.where(p.active, p.angle + dt * omega, p.angle)
+    errors = jnp.where(
+        jnp.any(p.active & (jnp.linalg.norm(dt * vel, axis=-1) > 0.5 * params.skin)),
+        ERR_SKIN_EXCEEDED,
+        0,
+    ).astype(jnp.int32)
+    p = replace(p, pos=pos, angle=angle, vel=vel, omega=omega)
+
+    walls = state.walls
+    wvel = wall_velocity(walls, params.thickness)
+    walls = replace(walls, point=walls.point + dt * wvel, vel=wvel)
+
+    contacts, build_err = jax.lax.cond(
+        needs_rebuild(p, state.contacts, params.skin),
+        lambda c: build_pairs(p, c, params.skin, grid),
+        lambda c: (c, jnp.zeros((), jnp.int32)),
+        state.contacts,
+    )
+    errors = errors | build_err
+
+    # dashpots see the end-of-step velocity predicted with the old force (second order)
+    damp = (vel + 0.5 * dt * p.force * inv_m[:, None], omega + 0.5 * dt * p.torque * inv_i)
+    f_pp, t_pp, xi, _ = pair_forces(p, contacts, params, damp)
+    f_w, t_w, wall_xi, on_wall, _ = wall_forces(p, walls, contacts.wall_xi, params, damp)
+    gravity = jnp.where(p.active[:, None], p.mass[:, None] * params.gravity[None, :], 0.0)
+    force = f_pp + f_w + gravity
+    torque = t_pp + t_w
+
+    # kick (half)
+    vel = vel + 0.5 * dt * force * inv_m[:, None]
+    omega = omega + 0.5 * dt * torque * inv_i
+    p = replace(p, vel=vel, omega=omega, force=force, torque=torque)
+    contacts = replace(contacts, xi=xi, wall_xi=wall_xi)
+    walls = replace(walls, force=on_wall)
+    finite = jnp.all(jnp.isfinite(p.pos)) & jnp.all(jnp.isfinite(p.vel))
+    finite = finite & jnp.all(jnp.isfinite(p.omega)) & jnp.all(jnp.isfinite(p.angle))
+    errors = errors | jnp.where(finite, 0, ERR_NAN)
+    new = SimState(
+        particles=p,
+        walls=walls,
+        contacts=contacts,
+        time=state.time + dt,
+        step=state.step + 1,
+        bonds=state.bonds,
+    )
+    return new, errors.astype(jnp.int32)
+
+
+def initial_forces(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
+    """Build the pair list and evaluate forces for the current positions (no motion), so
+    the first Verlet kick uses consistent forces."""
+    p = state.particles
+    contacts, errors = build_pairs(p, state.contacts, params.skin, grid)
+    f_pp, t_pp, xi, _ = pair_forces(p, contacts, params)
+    f_w, t_w, wall_xi, on_wall, _ = wall_forces(p, state.walls, contacts.wall_xi, params)
+    gravity = jnp.where(p.active[:, None], p.mass[:, None] * params.gravity[None, :], 0.0)
+    # springs start from zero: the evaluation above only primes them with v_t dt
+    del xi, wall_xi
+    p = replace(p, force=f_pp + f_w + gravity, torque=t_pp + t_w)
+    return (
+        SimState(
+            particles=p,
+            walls=replace(state.walls, force=on_wall),
+            contacts=contacts,
+            time=state.time,
+            step=state.step,
+            bonds=state.bonds,
+        ),
+        errors,
+    )

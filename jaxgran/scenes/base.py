@@ -1,0 +1,123 @@
+"""What every scene shares: a typed configuration with ``--set key=value`` overrides, and the
+standard outputs (summary.json, run.h5, figures).
+
+A scene module defines a ``Config`` dataclass (SI units in the field comments), ``QUICK``
+(overrides for a small, fast version used by tests and CI) and ``run(config, out_dir) ->
+summary dict``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+
+def apply_overrides(config: Any, overrides: dict[str, str] | None) -> Any:
+    """Return a copy of the dataclass ``config`` with string overrides cast to each field's
+    type; unknown keys raise ValueError listing the valid ones."""
+    if not overrides:
+        return config
+    fields = {f.name: f for f in dataclasses.fields(config)}
+    changes = {}
+    for key, raw in overrides.items():
+        if key not in fields:
+            raise ValueError(
+                f"unknown setting {key!r}; valid settings: {', '.join(sorted(fields))}"
+            )
+        current = getattr(config, key)
+        changes[key] = _cast(raw, current, key)
+    return dataclasses.replace(config, **changes)
+
+
+def _cast(raw: str | Any, current: Any, key: str) -> Any:
+    if not isinstance(raw, str):
+        return raw
+    try:
+        if isinstance(current, bool):
+            if raw.lower() in ("1", "true", "yes", "on"):
+                return True
+            if raw.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(raw)
+        if isinstance(current, int):
+            return int(float(raw)) if float(raw).is_integer() else int(raw)
+        if isinstance(current, float):
+            return float(raw)
+        if isinstance(current, tuple):
+            return tuple(type(c)(v) for c, v in zip(current, raw.split(","), strict=True))
+        return raw
+    except ValueError as exc:
+        raise ValueError(
+            f"setting {key}={raw!r} cannot be read as {type(current).__name__}"
+        ) from exc
+
+
+def parse_sets(items: list[str] | None) -> dict[str, str]:
+    """``["a=1", "b=x"]`` -> ``{"a": "1", "b": "x"}`` with a clear error for bad items."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def environment() -> dict[str, Any]:
+    """Versions and machine facts stored with every run."""
+    from .. import __version__
+
+    return {
+        "jaxgran_version": __version__,
+        "jax_version": jax.__version__,
+        "numpy_version": np.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "backend": jax.default_backend(),
+        "x64": bool(jax.config.jax_enable_x64),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+
+
+def write_outputs(
+    out_dir: Path,
+    scene: str,
+    config: Any,
+    result,
+    params,
+    summary: dict,
+    *,
+    events: list[dict] | None = None,
+    figures: bool = True,
+    vtk: bool = False,
+) -> dict:
+    """Write summary.json, run.h5 and the standard figures; return the summary."""
+    from .. import io
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta = {"scene": scene, "config": dataclasses.asdict(config), **environment()}
+    summary = {"scene": scene, **summary, "config": dataclasses.asdict(config), **environment()}
+    io.write_run(out_dir / "run.h5", result, params, metadata=meta, events=events)
+    io.write_summary(out_dir / "summary.json", summary)
+    if figures:
+        from .. import plot
+
+        summary["figures"] = [str(p) for p in plot.plot_run(io.read_run(out_dir / "run.h5"), out_dir)]
+        io.write_summary(out_dir / "summary.json", summary)
+    if vtk:
+        io.write_vtk(out_dir / "vtk" / "frame", io.read_run(out_dir / "run.h5"))
+    return summary
+
+
+def dumps(summary: dict) -> str:
+    """Compact human-readable summary for the terminal."""
+    keep = {k: v for k, v in summary.items() if k not in ("config", "figures")}
+    return json.dumps(keep, indent=2, default=float)

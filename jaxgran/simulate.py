@@ -1,0 +1,292 @@
+"""The time loop: a jit-compiled segment of steps, and the host loop around it.
+
+``run_segment`` is one ``lax.scan`` over ``n_records x record_every`` steps; it returns the new
+state, one record every ``record_every`` steps and the OR of the per-step error bits. The host
+loop (:func:`simulate`) checks the bits after each segment: a full cell or pair list is grown
+and the segment repeated from its start (so results do not depend on the initial capacity),
+NaN or an escaped particle stops the run with an error that says what to do. Between segments
+a callback may change the state on the host (breakage, loading stages) and decide to stop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time as _time
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .integrate import initial_forces, step
+from .state import (
+    ERR_CELL_OVERFLOW,
+    ERR_LEFT_DOMAIN,
+    ERR_NAN,
+    ERR_PAIR_OVERFLOW,
+    ERR_SKIN_EXCEEDED,
+    Contacts,
+    Grid,
+    Params,
+    SimState,
+    describe_errors,
+    replace,
+)
+
+log = logging.getLogger(__name__)
+
+
+class SimulationError(RuntimeError):
+    """A run cannot continue (NaN, particle escaped, step too large)."""
+
+
+class Record(eqx.Module):
+    """Time series sampled every ``record_every`` steps (leading axis = record)."""
+
+    time: Array
+    kinetic_energy: Array  # J (translational + rotational), per unit thickness slab
+    rotational_energy: Array  # J
+    mean_speed: Array  # m/s over active particles
+    mean_angular_speed: Array  # rad/s
+    wall_point: Array  # [W, 2] m
+    wall_force: Array  # [W, 2] N, force of the particles on each wall
+    n_active: Array
+
+
+def record(state: SimState) -> Record:
+    p = state.particles
+    act = p.active
+    ke_t = 0.5 * jnp.sum(jnp.where(act, p.mass * jnp.sum(p.vel**2, axis=-1), 0.0))
+    ke_r = 0.5 * jnp.sum(jnp.where(act, p.inertia * p.omega**2, 0.0))
+    n = jnp.maximum(jnp.sum(act), 1)
+    speed = jnp.sum(jnp.where(act, jnp.linalg.norm(p.vel, axis=-1), 0.0)) / n
+    ang = jnp.sum(jnp.where(act, jnp.abs(p.omega), 0.0)) / n
+    return Record(
+        time=state.time,
+        kinetic_energy=ke_t + ke_r,
+        rotational_energy=ke_r,
+        mean_speed=speed,
+        mean_angular_speed=ang,
+        wall_point=state.walls.point,
+        wall_force=state.walls.force,
+        n_active=jnp.sum(act).astype(jnp.int32),
+    )
+
+
+@eqx.filter_jit
+def run_segment(
+    state: SimState, params: Params, grid: Grid, n_records: int, record_every: int
+) -> tuple[SimState, Record, Array]:
+    """Run ``n_records * record_every`` steps in one compiled scan.
+
+    Returns the final state, ``n_records`` records and the error bitmask (OR over steps).
+    """
+
+    def inner(carry, _):
+        s, err = carry
+        s, e = step(s, params, grid)
+        return (s, err | e), None
+
+    def outer(carry, _):
+        carry, _ = jax.lax.scan(inner, carry, None, length=record_every)
+        return carry, record(carry[0])
+
+    (state, err), recs = jax.lax.scan(
+        outer, (state, jnp.zeros((), jnp.int32)), None, length=n_records
+    )
+    return state, recs, err
+
+
+@eqx.filter_jit
+def prepare(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
+    """Build the pair list and the forces of the initial configuration."""
+    return initial_forces(state, params, grid)
+
+
+def grow_pairs(contacts: Contacts, new_capacity: int) -> Contacts:
+    """Return ``contacts`` with room for ``new_capacity`` pairs (sentinel padding)."""
+    c = contacts.pairs.shape[0]
+    if new_capacity <= c:
+        return contacts
+    extra = new_capacity - c
+    sentinel = int(contacts.ref_pos.shape[0])
+    pairs = jnp.concatenate(
+        [contacts.pairs, jnp.full((extra, 2), sentinel, contacts.pairs.dtype)], axis=0
+    )
+    xi = jnp.concatenate(
+        [contacts.xi, jnp.zeros((extra,) + contacts.xi.shape[1:], contacts.xi.dtype)], axis=0
+    )
+    return replace(contacts, pairs=pairs, xi=xi)
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What :func:`simulate` returns: final state, time series, frames, timing."""
+
+    state: SimState
+    series: dict[str, np.ndarray]
+    frames: list[dict[str, np.ndarray]]
+    grid: Grid
+    steps: int
+    wall_time_s: float
+    regrows: list[str]
+    stopped_early: bool = False
+
+
+def _fatal(err: int, state: SimState) -> None:
+    if err & ERR_NAN:
+        raise SimulationError(
+            "NaN or inf appeared in the state; the time step is probably too large for the "
+            "stiffness (use jaxgran.integrate.stable_time_step) or a particle has zero mass"
+        )
+    if err & ERR_LEFT_DOMAIN:
+        raise SimulationError(
+            "a particle left the simulation domain; enlarge the domain (grid bounds) or check "
+            "that walls enclose the particles"
+        )
+    if err & ERR_SKIN_EXCEEDED:
+        raise SimulationError(
+            "a particle moved more than half the Verlet skin in one step, so contacts could be "
+            "missed; reduce dt or increase params.skin"
+        )
+
+
+def frame_of(state: SimState) -> dict[str, np.ndarray]:
+    """Host copy of what a frame stores (positions, angles, velocities, forces)."""
+    p = state.particles
+    return {
+        "time": np.asarray(state.time),
+        "pos": np.asarray(p.pos),
+        "angle": np.asarray(p.angle),
+        "vel": np.asarray(p.vel),
+        "omega": np.asarray(p.omega),
+        "force": np.asarray(p.force),
+        "active": np.asarray(p.active),
+        "wall_point": np.asarray(state.walls.point),
+        "wall_force": np.asarray(state.walls.force),
+    }
+
+
+def simulate(
+    state: SimState,
+    params: Params,
+    grid: Grid,
+    *,
+    n_steps: int,
+    record_every: int = 100,
+    records_per_segment: int = 10,
+    frame_every: int = 1,
+    callback: Callable[[SimState, dict[str, np.ndarray]], tuple[SimState, bool]] | None = None,
+    progress: bool = True,
+    max_regrows: int = 8,
+    prepared: bool = False,
+    desc: str = "simulate",
+) -> RunResult:
+    """Run ``n_steps`` steps (rounded up to whole segments) with host checks between segments.
+
+    Args:
+        record_every: steps between two records of the time series.
+        records_per_segment: records per compiled segment (segment length =
+            ``record_every * records_per_segment`` steps).
+        frame_every: keep a frame every this many segments (and always the last).
+        callback: ``callback(state, last_records) -> (state, stop)`` run on the host after each
+            segment (breakage, stage changes, stopping criteria). It may change values but not
+            capacities (or it must also rebuild contacts).
+        prepared: the state already carries a pair list and forces (skip :func:`prepare`).
+    """
+    from tqdm.auto import tqdm
+
+    seg_steps = record_every * records_per_segment
+    n_seg = max(1, -(-int(n_steps) // seg_steps))
+    t0 = _time.perf_counter()
+    regrows: list[str] = []
+    if not prepared:
+        state, err = prepare(state, params, grid)
+        state, grid, err = _grow_until_ok(state, params, grid, int(err), regrows, max_regrows)
+        _fatal(err, state)
+    series: dict[str, list] = {}
+    frames = [frame_of(state)]
+    stopped = False
+    bar = tqdm(total=n_seg * seg_steps, desc=desc, disable=not progress, unit="step")
+    done = 0
+    for k in range(n_seg):
+        start = state
+        tries = 0
+        while True:
+            new, recs, err = run_segment(start, params, grid, records_per_segment, record_every)
+            err = int(err)
+            if err & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
+                if tries >= max_regrows:
+                    raise SimulationError(f"capacity still exceeded after {tries} regrowths")
+                # the list fitted at the segment start, so padding it and repeating the
+                # segment reproduces exactly what an ample capacity would have given
+                start, grid = _grow(start, grid, err, regrows)
+                tries += 1
+                continue
+            break
+        _fatal(err, new)
+        state = new
+        rec = {f.name: np.asarray(getattr(recs, f.name)) for f in dataclasses.fields(recs)}
+        for key, val in rec.items():
+            series.setdefault(key, []).append(val)
+        done += seg_steps
+        bar.update(seg_steps)
+        if (k + 1) % frame_every == 0 or k == n_seg - 1:
+            frames.append(frame_of(state))
+        if callback is not None:
+            state, stop = callback(state, rec)
+            if stop:
+                stopped = True
+                if (k + 1) % frame_every != 0:
+                    frames.append(frame_of(state))
+                break
+    bar.close()
+    jax.block_until_ready(state)
+    out = {k: np.concatenate(v, axis=0) for k, v in series.items()}
+    return RunResult(
+        state=state,
+        series=out,
+        frames=frames,
+        grid=grid,
+        steps=done,
+        wall_time_s=_time.perf_counter() - t0,
+        regrows=regrows,
+        stopped_early=stopped,
+    )
+
+
+def _grow(state: SimState, grid: Grid, err: int, regrows: list[str]) -> tuple[SimState, Grid]:
+    if err & ERR_CELL_OVERFLOW:
+        new_cap = grid.cell_capacity * 2
+        msg = f"cell capacity {grid.cell_capacity} exceeded; grown to {new_cap}"
+        grid = dataclasses.replace(grid, cell_capacity=new_cap)
+        regrows.append(msg)
+        log.info(msg)
+    if err & ERR_PAIR_OVERFLOW:
+        c = state.contacts.pairs.shape[0]
+        new_c = int(c * 2)
+        msg = f"pair capacity {c} exceeded; grown to {new_c}"
+        state = replace(state, contacts=grow_pairs(state.contacts, new_c))
+        regrows.append(msg)
+        log.info(msg)
+    return state, grid
+
+
+def _grow_until_ok(state, params, grid, err, regrows, max_regrows):
+    tries = 0
+    while err & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
+        if tries >= max_regrows:
+            raise SimulationError(f"capacity still exceeded after {tries} regrowths")
+        state, grid = _grow(state, grid, err, regrows)
+        state, e = prepare(state, params, grid)
+        err = int(e)
+        tries += 1
+    return state, grid, err
+
+
+def describe(err: int) -> str:
+    """Human-readable error bits."""
+    return ", ".join(describe_errors(err)) or "ok"

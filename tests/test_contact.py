@@ -1,0 +1,143 @@
+"""Contact geometry and law: Newton's third law, invariances, corner double counting."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxgran import geometry as geo
+from jaxgran.contact import closest_features, damping_from_restitution, pair_forces
+from jaxgran.partition import make_grid
+from jaxgran.simulate import prepare
+from jaxgran.state import make_params, make_state, make_walls, particles_from_polygons
+
+
+def _forces(polys, radius=1e-3, params=None, perm=None):
+    params = params or make_params(gravity=(0.0, 0.0), friction=0.5, dt=1e-6)
+    parts = particles_from_polygons(polys, radius, 12.0, vertex_capacity=8)
+    state = make_state(parts, make_walls([]), pair_capacity=64)
+    lo = np.min([np.min(p, axis=0) for p in polys], axis=0) - 0.1
+    hi = np.max([np.max(p, axis=0) for p in polys], axis=0) + 0.1
+    grid = make_grid(tuple(lo), tuple(hi), float(jnp.max(parts.bound_radius)), 2e-3)
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0
+    return state
+
+
+def _packing(seed=0):
+    """A few overlapping pentagons/hexagons around the origin (static configuration)."""
+    rng = np.random.default_rng(seed)
+    polys = []
+    centers = [(0, 0), (0.021, 0.002), (-0.002, 0.0205), (0.02, 0.022), (-0.0215, -0.003)]
+    for k, c in enumerate(centers):
+        polys.append(
+            geo.regular_polygon(5 + k % 3, 0.011, rotation=rng.uniform(0, 2 * np.pi), center=c)
+        )
+    return polys
+
+
+def test_newton_third_law_and_zero_net_torque():
+    state = _forces(_packing())
+    p = state.particles
+    f, t = np.asarray(p.force), np.asarray(p.torque)
+    assert np.abs(f).max() > 1.0, "the test scene must have contacts"
+    # internal forces sum to zero; so does the total moment about any point
+    scale = np.abs(f).max()
+    np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-12 * scale)
+    x = np.asarray(p.pos)
+    moment = np.sum(x[:, 0] * f[:, 1] - x[:, 1] * f[:, 0]) + t.sum()
+    assert abs(moment) < 1e-12 * scale
+
+
+def test_forces_rotate_and_translate_with_the_scene():
+    polys = _packing(1)
+    phi = 0.7
+    rot = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+    shift = np.array([0.3, -0.2])
+    a = _forces(polys).particles
+    b = _forces([q @ rot.T + shift for q in polys]).particles
+    np.testing.assert_allclose(
+        np.asarray(b.force), np.asarray(a.force) @ rot.T, atol=1e-9 * np.abs(a.force).max()
+    )
+    np.testing.assert_allclose(np.asarray(b.torque), np.asarray(a.torque), atol=1e-12)
+
+
+def test_forces_permute_with_particle_order():
+    polys = _packing(2)
+    perm = np.array([3, 0, 4, 1, 2])
+    a = _forces(polys).particles
+    b = _forces([polys[k] for k in perm]).particles
+    np.testing.assert_allclose(np.asarray(b.force), np.asarray(a.force)[perm], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(b.torque), np.asarray(a.torque)[perm], atol=1e-14)
+
+
+def test_aligned_squares_edge_contact_has_twice_not_four_times_the_stiffness():
+    # two unit-ish squares stacked exactly, corners coinciding, overlap delta
+    h, r, delta = 0.01, 1e-3, 1e-5
+    sq = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float)
+    top = sq + [0.0, h + 2 * r - delta]
+    k_n = 6e5
+    params = make_params(normal_stiffness=k_n, gravity=(0, 0), dt=1e-6, friction=0.0)
+    state = _forces([sq, top], radius=r, params=params)
+    f = np.asarray(state.particles.force)
+    # two contacts (one per corner column), each k_n * delta
+    np.testing.assert_allclose(f[1], [0.0, 2 * k_n * delta], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(f[0], -f[1], rtol=1e-12)
+
+
+def test_offset_squares_edge_contact_acts_at_overlap_ends():
+    h, r, delta = 0.01, 1e-3, 2e-5
+    sq = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float)
+    top = sq + [0.4 * h, h + 2 * r - delta]
+    k_n = 1e5
+    params = make_params(normal_stiffness=k_n, gravity=(0, 0), dt=1e-6, friction=0.0)
+    state = _forces([sq, top], radius=r, params=params)
+    f = np.asarray(state.particles.force)
+    t = np.asarray(state.particles.torque)
+    np.testing.assert_allclose(f[1], [0.0, 2 * k_n * delta], rtol=1e-9, atol=1e-12)
+    # contacts at x = 0.4h (top's corner) and x = h (bottom's corner); top centroid at 0.9h
+    xs = np.array([0.4 * h, h])
+    torque_top = np.sum((xs - 0.9 * h) * k_n * delta)
+    np.testing.assert_allclose(t[1], torque_top, rtol=1e-9, atol=1e-15)
+
+
+def test_disc_disc_contact_counted_once():
+    r1, r2, delta = 0.01, 0.02, 1e-5
+    a = np.array([[0.0, 0.0]])
+    b = np.array([[r1 + r2 - delta, 0.0]])
+    parts = particles_from_polygons([a, b], [r1, r2], 12.0)
+    params = make_params(normal_stiffness=1e5, gravity=(0, 0), dt=1e-6)
+    state = make_state(parts, make_walls([]), pair_capacity=4)
+    grid = make_grid((-0.1, -0.1), (0.1, 0.1), 0.02, 1e-3)
+    state, _ = prepare(state, params, grid)
+    f = np.asarray(state.particles.force)
+    np.testing.assert_allclose(f[1], [1e5 * delta, 0.0], rtol=1e-9, atol=1e-15)
+
+
+def test_closest_feature_classification():
+    sq = jnp.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
+    pts = jnp.array([[0.5, -0.1], [-0.1, -0.1], [1.2, 0.5], [0.5, 0.1]])
+    gap, normal, q, vert, ok = closest_features(pts, 4, sq, 4)
+    np.testing.assert_allclose(gap, [0.1, np.sqrt(0.02), 0.2, -0.1], atol=1e-12)
+    np.testing.assert_array_equal(vert, [-1, 0, -1, -1])
+    np.testing.assert_allclose(normal[0], [0, -1], atol=1e-12)
+    np.testing.assert_allclose(normal[1], [-1 / np.sqrt(2), -1 / np.sqrt(2)], atol=1e-12)
+
+
+def test_damping_from_restitution_limits():
+    assert damping_from_restitution(1.0, 1e5, 1e-3) == 0.0
+    with pytest.raises(ValueError, match="restitution"):
+        damping_from_restitution(0.0, 1e5, 1e-3)
+
+
+def test_pair_forces_are_nan_free_with_padding_and_touching():
+    # exactly touching particles (zero overlap) and padded slots must not produce NaN
+    r = 1e-3
+    a = geo.regular_polygon(4, 0.01)
+    b = a + [0.0, np.ptp(a[:, 1]) + 2 * r]
+    parts = particles_from_polygons([a, b], r, 12.0, capacity=4, vertex_capacity=6)
+    params = make_params(gravity=(0, 0), dt=1e-6)
+    state = make_state(parts, make_walls([]), pair_capacity=8)
+    grid = make_grid((-0.1, -0.1), (0.1, 0.1), 0.02, 2e-3)
+    state, _ = prepare(state, params, grid)
+    f, t, xi, info = pair_forces(state.particles, state.contacts, params)
+    assert np.all(np.isfinite(f)) and np.all(np.isfinite(t)) and np.all(np.isfinite(xi))
