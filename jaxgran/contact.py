@@ -41,59 +41,84 @@ def world_vertices(p: Particles) -> Array:
     return jnp.stack([wx, wy], axis=-1)
 
 
+def _dot(a: Array, b: Array) -> Array:
+    """Dot product over the last axis (size 2), written out: XLA's CPU backend reduces tiny
+    trailing axes far more slowly than it fuses the explicit sum."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
 def _safe_norm(v: Array) -> tuple[Array, Array]:
     """|v| and v/|v| with finite values and gradients at v = 0 (double-where)."""
-    n2 = jnp.sum(v * v, axis=-1)
+    n2 = _dot(v, v)
     ok = n2 > _TINY
     n = jnp.sqrt(jnp.where(ok, n2, 1.0))
     unit = jnp.where(ok[..., None], v / n[..., None], 0.0)
     return jnp.where(ok, n, 0.0), unit
 
 
-def closest_features(va: Array, na: Array, vb: Array, nb: Array):
-    """Closest point on core polygon B of every vertex of core polygon A (one pair).
+def edge_frames(wv: Array, n_verts: Array) -> tuple[Array, Array, Array]:
+    """Per-edge unit outward normal ``[..., V, 2]``, unit tangent ``[..., V, 2]`` and length
+    ``[..., V]`` (m) of CCW core polygons. Edge k runs from vertex k to vertex k+1 (or 0);
+    padded edges (k >= n) get length 0 and a zero normal. A disc (n = 1) has one zero-length
+    edge at its centre."""
+    k = jnp.arange(wv.shape[-2])
+    n = jnp.asarray(n_verts)[..., None]
+    nxt = jnp.where((k + 1 < n)[..., None], jnp.roll(wv, -1, axis=-2), wv[..., 0:1, :])
+    length, tangent = _safe_norm(nxt - wv)
+    real = k < n
+    length = jnp.where(real, length, 0.0)
+    tangent = jnp.where(real[..., None], tangent, 0.0)
+    normal = jnp.stack([tangent[..., 1], -tangent[..., 0]], axis=-1)
+    return normal, tangent, length
+
+
+def closest_features(va: Array, na: Array, vb: Array, nb: Array, frames=None):
+    """Closest point on core polygon B of every vertex of core polygon A.
+
+    For a convex polygon the closest feature of an outside point is found from the edge of
+    largest signed distance ``h_k = (x - a_k) . n_k``: if the point projects inside that edge
+    the contact is vertex-edge with gap ``h_k``; otherwise the closest point is the edge's end
+    on that side (vertex-vertex, gap = distance). A point inside B gets its least-penetrated
+    edge (the way out). Written with leading batch axes ``...`` (one pair or ``C`` pairs).
 
     Args:
-        va, vb: world vertices ``[V, 2]`` (m), CCW, padded by repeating the last vertex.
-        na, nb: real vertex counts (scalars).
+        va, vb: world vertices ``[..., V, 2]`` (m), CCW, padded by repeating the last vertex.
+        na, nb: real vertex counts ``[...]``.
+        frames: optional precomputed :func:`edge_frames` of B.
 
     Returns:
-        gap ``[V]``: signed distance from the vertex to B's core (m), negative if inside.
-        normal ``[V, 2]``: unit vector from B towards the vertex.
-        point ``[V, 2]``: closest point on B's core (m).
-        vertex ``[V]``: index of B's vertex if the closest point is a vertex, else -1.
-        valid ``[V]``: the vertex slot is real.
+        gap ``[..., V]``: signed distance from the vertex to B's core (m), negative if inside.
+        normal ``[..., V, 2]``: unit vector from B towards the vertex.
+        point ``[..., V, 2]``: closest point on B's core (m).
+        vertex ``[..., V]``: index of B's vertex if the closest point is a vertex, else -1.
+        valid ``[..., V]``: the vertex slot is real.
     """
-    v = va.shape[0]
+    v = va.shape[-2]
     k = jnp.arange(v)
-    nxt = jnp.where(k + 1 < nb, k + 1, 0)
-    a = vb  # edge starts [V, 2]
-    b = vb[nxt]
-    e = b - a
-    l2 = jnp.sum(e * e, axis=-1)
-    deg = l2 <= _TINY
-    rel = va[:, None, :] - a[None, :, :]  # [Va, Ve, 2]
-    s = jnp.sum(rel * e[None], axis=-1) / jnp.where(deg, 1.0, l2)[None]
-    s = jnp.where(deg[None], 0.0, jnp.clip(s, 0.0, 1.0))
-    q = a[None] + s[..., None] * e[None]
-    d2 = jnp.sum((va[:, None, :] - q) ** 2, axis=-1)
-    d2 = jnp.where((k < nb)[None, :], d2, jnp.inf)
-    best = jnp.argmin(d2, axis=1)  # [Va]
-    s_b = jnp.take_along_axis(s, best[:, None], axis=1)[:, 0]
-    q_b = jnp.take_along_axis(q, best[:, None, None], axis=1)[:, 0]
-    interior = (s_b > 0.0) & (s_b < 1.0) & (nb >= 3)
-    e_b = e[best]
-    _, t_b = _safe_norm(e_b)
-    n_edge = jnp.stack([t_b[:, 1], -t_b[:, 0]], axis=-1)  # outward normal of a CCW edge
-    dist, n_pt = _safe_norm(va - q_b)
-    # a stadium's two "edges" coincide, so its normal always comes from the closest point
-    n_pt = jnp.where((dist > 0)[:, None], n_pt, n_edge)
-    normal = jnp.where(interior[:, None], n_edge, n_pt)
-    gap = jnp.where(interior, jnp.sum((va - q_b) * n_edge, axis=-1), dist)
-    vert = jnp.where(s_b <= 0.0, best, nxt[best])
-    vertex = jnp.where(interior, -1, vert)
-    valid = k < na
-    return gap, normal, q_b, vertex, valid
+    nb_ = jnp.asarray(nb)[..., None]
+    normal_e, tangent_e, length_e = edge_frames(vb, nb) if frames is None else frames
+    rel = va[..., :, None, :] - vb[..., None, :, :]  # [..., Va, Ve, 2]
+    h = _dot(rel, normal_e[..., None, :, :])
+    h = jnp.where((k < nb_)[..., None, :], h, -jnp.inf)
+    best = jnp.argmax(h, axis=-1)  # [..., Va]
+    take = lambda x: jnp.take_along_axis(x, best[..., None], axis=-2)  # x: [..., Ve, 2]
+    a_b = take(vb)
+    n_b = take(normal_e)
+    t_b = take(tangent_e)
+    l_b = jnp.take_along_axis(length_e, best, axis=-1)
+    d = va - a_b
+    s = _dot(d, t_b)
+    interior = (s > 0.0) & (s < l_b) & (nb_ >= 2)
+    nxt = jnp.where(best + 1 < nb_, best + 1, 0)
+    w = jnp.where((s <= 0.0)[..., None], a_b, a_b + l_b[..., None] * t_b)
+    dist, n_pt = _safe_norm(va - w)
+    n_pt = jnp.where((dist > 0)[..., None], n_pt, n_b)
+    normal = jnp.where(interior[..., None], n_b, n_pt)
+    gap = jnp.where(interior, _dot(d, n_b), dist)
+    point = jnp.where(interior[..., None], a_b + s[..., None] * t_b, w)
+    vertex = jnp.where(interior, -1, jnp.where(s <= 0.0, best, nxt))
+    valid = k < jnp.asarray(na)[..., None]
+    return gap, normal, point, vertex, valid
 
 
 def contact_law(
@@ -126,15 +151,15 @@ def contact_law(
     Returns: (force on the body (N), new xi (m), normal force magnitude F_n (N)).
     """
     v_damp = v_rel if v_damp is None else v_damp
-    vn_d = jnp.sum(v_damp * normal, axis=-1)
+    vn_d = _dot(v_damp, normal)
     vt_d = v_damp - vn_d[..., None] * normal
     fn = stiffness_n * overlap - damping_n * m_eff * vn_d
     fn = jnp.where(active, jnp.maximum(fn, 0.0), 0.0)
-    vn = jnp.sum(v_rel * normal, axis=-1)
+    vn = _dot(v_rel, normal)
     vt = v_rel - vn[..., None] * normal
     # rotate the spring into the current tangent plane, keeping its length
     xi_len, _ = _safe_norm(xi)
-    xi_t = xi - jnp.sum(xi * normal, axis=-1, keepdims=True) * normal
+    xi_t = xi - _dot(xi, normal)[..., None] * normal
     xi_t_len, xi_t_dir = _safe_norm(xi_t)
     xi = jnp.where((xi_t_len > 0)[..., None], xi_t_dir * xi_len[..., None], 0.0)
     xi = xi + vt * dt
@@ -159,20 +184,21 @@ def _omega_cross(w: Array, r: Array) -> Array:
     return jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
 
 
-def _pair_geometry(wv: Array, p: Particles, i: Array, j: Array):
-    """Both directions of one pair: features of i's vertices on j and j's vertices on i."""
-    g0, n0, q0, vx0, ok0 = closest_features(wv[i], p.n_verts[i], wv[j], p.n_verts[j])
-    g1, n1, q1, vx1, ok1 = closest_features(wv[j], p.n_verts[j], wv[i], p.n_verts[i])
-    idx = jnp.arange(wv.shape[1])
-    # vertex-vertex: keep when mutual, in direction 0 only
-    mutual0 = (vx0 >= 0) & (vx1[jnp.clip(vx0, 0)] == idx)
+def _pair_geometry(va: Array, na: Array, vb: Array, nb: Array, fa=None, fb=None):
+    """Both directions of pairs ``[..., V, 2]``: i's vertices on j, then j's vertices on i.
+
+    Returns gap, normal, closest point and a keep mask stacked on a direction axis
+    ``[..., 2, V(, 2)]``."""
+    g0, n0, q0, vx0, ok0 = closest_features(va, na, vb, nb, fb)
+    g1, n1, q1, vx1, ok1 = closest_features(vb, nb, va, na, fa)
+    idx = jnp.arange(va.shape[-2])
+    # vertex-vertex: keep when mutual (b is a's closest and a is b's), in direction 0 only
+    back = jnp.take_along_axis(vx1, jnp.clip(vx0, 0), axis=-1)
+    mutual0 = (vx0 >= 0) & (back == idx)
     keep0 = ok0 & ((vx0 < 0) | mutual0)
     keep1 = ok1 & (vx1 < 0)
-    gap = jnp.stack([g0, g1])
-    normal = jnp.stack([n0, n1])
-    point = jnp.stack([q0, q1])
-    keep = jnp.stack([keep0, keep1])
-    return gap, normal, point, keep
+    stack = lambda x, y: jnp.stack([x, y], axis=-3 if x.ndim > keep0.ndim else -2)
+    return stack(g0, g1), stack(n0, n1), stack(q0, q1), stack(keep0, keep1)
 
 
 def pair_forces(
@@ -194,7 +220,10 @@ def pair_forces(
     i = jnp.where(pair_ok, pairs[:, 0], 0)
     j = jnp.where(pair_ok, pairs[:, 1], 0)
     wv = world_vertices(p)
-    gap, normal, q, keep = jax.vmap(lambda a, b: _pair_geometry(wv, p, a, b))(i, j)
+    frames = edge_frames(wv, p.n_verts)
+    fi = tuple(f[i] for f in frames)
+    fj = tuple(f[j] for f in frames)
+    gap, normal, q, keep = _pair_geometry(wv[i], p.n_verts[i], wv[j], p.n_verts[j], fi, fj)
     # gap etc: [C, 2, V(, 2)]
     owner = jnp.stack([i, j], axis=1)  # [C, 2] body whose vertex is tested
     other = jnp.stack([j, i], axis=1)
@@ -254,9 +283,9 @@ def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp
     n_v = wv.shape[1]
     rel = wv[:, None, :, :] - walls.point[None, :, None, :]  # [P, W, V, 2]
     nrm = walls.normal[None, :, None, :]
-    gap = jnp.sum(rel * nrm, axis=-1)
+    gap = _dot(rel, nrm)
     tan = jnp.stack([-walls.normal[:, 1], walls.normal[:, 0]], axis=-1)[None, :, None, :]
-    s = jnp.sum(rel * tan, axis=-1)
+    s = _dot(rel, tan)
     inside = (s >= walls.extent[None, :, None, 0]) & (s <= walls.extent[None, :, None, 1])
     vert_ok = jnp.arange(n_v)[None, None, :] < p.n_verts[:, None, None]
     overlap = p.radius[:, None, None] - gap

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .contact import pair_forces, wall_forces
 from .integrate import initial_forces, step
 from .state import (
     ERR_CELL_OVERFLOW,
@@ -154,10 +155,30 @@ def _fatal(err: int, state: SimState) -> None:
         )
 
 
-def frame_of(state: SimState) -> dict[str, np.ndarray]:
-    """Host copy of what a frame stores (positions, angles, velocities, forces)."""
+@eqx.filter_jit
+def contact_force_magnitude(state: SimState, params: Params) -> Array:
+    """Sum over each particle's contacts (pairs and walls) of |F| ``[P]`` (N)."""
     p = state.particles
-    return {
+    _, _, _, info = pair_forces(p, state.contacts, params)
+    mag = jnp.linalg.norm(info["force"], axis=-1).sum(axis=2)  # [C, 2]
+    n_p = p.pos.shape[0]
+    i, j = state.contacts.pairs[:, 0], state.contacts.pairs[:, 1]
+    tot = mag.sum(axis=1)
+    out = jax.ops.segment_sum(tot, i, num_segments=n_p) + jax.ops.segment_sum(
+        tot, j, num_segments=n_p
+    )
+    *_, winfo = wall_forces(p, state.walls, state.contacts.wall_xi, params)
+    return out + jnp.linalg.norm(winfo["force"], axis=-1).sum(axis=(1, 2))
+
+
+def frame_of(state: SimState, params: Params | None = None) -> dict[str, np.ndarray]:
+    """Host copy of what a frame stores (positions, angles, velocities, forces, and with
+    ``params`` the contact-force magnitude per particle)."""
+    p = state.particles
+    extra = {}
+    if params is not None:
+        extra["contact_force"] = np.asarray(contact_force_magnitude(state, params))
+    return extra | {
         "time": np.asarray(state.time),
         "pos": np.asarray(p.pos),
         "angle": np.asarray(p.angle),
@@ -208,7 +229,7 @@ def simulate(
         state, grid, err = _grow_until_ok(state, params, grid, int(err), regrows, max_regrows)
         _fatal(err, state)
     series: dict[str, list] = {}
-    frames = [frame_of(state)]
+    frames = [frame_of(state, params)]
     stopped = False
     bar = tqdm(total=n_seg * seg_steps, desc=desc, disable=not progress, unit="step")
     done = 0
@@ -235,13 +256,13 @@ def simulate(
         done += seg_steps
         bar.update(seg_steps)
         if (k + 1) % frame_every == 0 or k == n_seg - 1:
-            frames.append(frame_of(state))
+            frames.append(frame_of(state, params))
         if callback is not None:
             state, stop = callback(state, rec)
             if stop:
                 stopped = True
                 if (k + 1) % frame_every != 0:
-                    frames.append(frame_of(state))
+                    frames.append(frame_of(state, params))
                 break
     bar.close()
     jax.block_until_ready(state)

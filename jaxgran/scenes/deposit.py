@@ -35,12 +35,13 @@ from .base import write_outputs
 class Config:
     n_cells: int = 500  # Voronoi cells generated (particles kept after the size filter)
     box_width: float = 0.50  # m
-    cell_size: float = 0.02  # m, target mean circumdiameter
+    cell_size: float = 0.022  # m, mean circumdiameter of the tessellation's cells
     min_diameter: float = 0.01  # m, circumdiameter range kept
     max_diameter: float = 0.03  # m
     sphero_radius: float = 1.0e-3  # m
     gap: float = 2.0e-4  # m, extra erosion so no two cells touch at t = 0
     spread: float = 1.25  # vertical spreading of the initial lattice
+    shrink: float = 0.85  # cells are scaled by this about their centroid (room to fall freely)
     normal_stiffness: float = 6.0e5  # N/m, Table I
     tangential_stiffness: float = 2.2e4  # N/m, Table I
     friction: float = 0.74  # Table I
@@ -76,11 +77,12 @@ def make_cells(cfg: Config) -> list[np.ndarray]:
     )
     out = []
     for c in cells:
-        d = 2 * geo.circumradius(c)
+        cen = geo.polygon_centroid(c)
+        c = cen + cfg.shrink * (c - cen)
+        d = 2 * (geo.circumradius(c) + cfg.sphero_radius)
         if not cfg.min_diameter <= d <= cfg.max_diameter:
             continue
         core = geo.offset_polygon(c, cfg.sphero_radius + cfg.gap)
-        cen = geo.polygon_centroid(core)
         core = core + [0.0, (cfg.spread - 1.0) * cen[1]]
         out.append(core + [0.0, cfg.sphero_radius + 0.002])
     if not out:
