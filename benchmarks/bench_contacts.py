@@ -40,10 +40,16 @@ def packing(n: int, dtype, seed: int = 0):
     import numpy as np
 
     from jaxgran import geometry as geo
-    from jaxgran.partition import make_grid
-    from jaxgran.state import box_walls, make_params, make_state, make_walls, particles_from_polygons
     from jaxgran.integrate import stable_time_step
-    from jaxgran.state import replace
+    from jaxgran.partition import make_grid
+    from jaxgran.state import (
+        box_walls,
+        make_params,
+        make_state,
+        make_walls,
+        particles_from_polygons,
+        replace,
+    )
 
     cell = 0.02
     side = cell * np.sqrt(n * 0.65)
@@ -56,7 +62,10 @@ def packing(n: int, dtype, seed: int = 0):
     walls = make_walls(box_walls((0.0, 0.0), (side, side)), dtype=dtype)
     state = make_state(parts, walls, pair_capacity=5 * n)
     grid = make_grid(
-        (-0.05, -0.05), (side + 0.05, side + 0.05), float(jnp.max(parts.bound_radius)), 2e-3,
+        (-0.05, -0.05),
+        (side + 0.05, side + 0.05),
+        float(jnp.max(parts.bound_radius)),
+        2e-3,
         cell_capacity=12,
     )
     return state, params, grid

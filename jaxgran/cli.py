@@ -1,9 +1,9 @@
 """The ``jaxgran`` command: run a scene, redraw figures, print environment information.
 
-    jaxgran run deposit [--out DIR] [--set key=value ...] [--quick] [--vtk] [--no-progress]
-    jaxgran plot runs/deposit/run.h5 [--out DIR]
-    jaxgran info
-    jaxgran scenes
+jaxgran run deposit [--out DIR] [--set key=value ...] [--quick] [--vtk] [--no-progress]
+jaxgran plot runs/deposit/run.h5 [--out DIR]
+jaxgran info
+jaxgran scenes
 """
 
 from __future__ import annotations
@@ -27,15 +27,17 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("scene", help="scene name (see `jaxgran scenes`)")
     run_p.add_argument("--out", type=Path, default=None, help="output folder (runs/<scene>)")
     run_p.add_argument(
-        "--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="override a configuration value (repeatable)",
     )
     run_p.add_argument("--quick", action="store_true", help="small, fast version")
     run_p.add_argument("--vtk", action="store_true", help="also write VTK files for ParaView")
     run_p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    run_p.add_argument(
-        "--float32", action="store_true", help="run in float32 (default float64)"
-    )
+    run_p.add_argument("--float32", action="store_true", help="run in float32 (default float64)")
 
     plot_p = sub.add_parser("plot", help="redraw the figures of a run.h5")
     plot_p.add_argument("path", type=Path)
@@ -70,9 +72,7 @@ def _run(args) -> int:
     from .scenes.base import apply_overrides, dumps, parse_sets
 
     if args.scene not in SCENES:
-        print(
-            f"unknown scene {args.scene!r}; available: {', '.join(SCENES)}", file=sys.stderr
-        )
+        print(f"unknown scene {args.scene!r}; available: {', '.join(SCENES)}", file=sys.stderr)
         return 2
     mod = SCENES[args.scene]
     cfg = mod.Config()

@@ -53,11 +53,13 @@ class Record(eqx.Module):
     mean_speed: Array  # m/s over active particles
     mean_angular_speed: Array  # rad/s
     wall_point: Array  # [W, 2] m
-    wall_force: Array  # [W, 2] N, force of the particles on each wall
+    wall_force: Array  # [W, 2] N, force of the particles on each wall, mean over the interval
     n_active: Array
 
 
-def record(state: SimState) -> Record:
+def record(state: SimState, wall_force_mean: Array | None = None) -> Record:
+    """Sample the time series; ``wall_force_mean`` is the wall force averaged over the steps
+    since the last record (an instantaneous sample would alias the packing's vibrations)."""
     p = state.particles
     act = p.active
     ke_t = 0.5 * jnp.sum(jnp.where(act, p.mass * jnp.sum(p.vel**2, axis=-1), 0.0))
@@ -72,7 +74,7 @@ def record(state: SimState) -> Record:
         mean_speed=speed,
         mean_angular_speed=ang,
         wall_point=state.walls.point,
-        wall_force=state.walls.force,
+        wall_force=state.walls.force if wall_force_mean is None else wall_force_mean,
         n_active=jnp.sum(act).astype(jnp.int32),
     )
 
@@ -87,13 +89,15 @@ def run_segment(
     """
 
     def inner(carry, _):
-        s, err = carry
+        s, err, wf = carry
         s, e = step(s, params, grid)
-        return (s, err | e), None
+        return (s, err | e, wf + s.walls.force), None
 
     def outer(carry, _):
-        carry, _ = jax.lax.scan(inner, carry, None, length=record_every)
-        return carry, record(carry[0])
+        s, err = carry
+        wf0 = jnp.zeros_like(s.walls.force)
+        (s, err, wf), _ = jax.lax.scan(inner, (s, err, wf0), None, length=record_every)
+        return (s, err), record(s, wf / record_every)
 
     (state, err), recs = jax.lax.scan(
         outer, (state, jnp.zeros((), jnp.int32)), None, length=n_records

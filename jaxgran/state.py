@@ -482,9 +482,7 @@ def empty_contacts(
     )
 
 
-def make_state(
-    particles: Particles, walls: Walls, *, pair_capacity: int | None = None
-) -> SimState:
+def make_state(particles: Particles, walls: Walls, *, pair_capacity: int | None = None) -> SimState:
     """Assemble a :class:`SimState` at t = 0. The default pair capacity is 4 per particle;
     the host loop grows it when needed."""
     n_p, n_v = particles.verts.shape[:2]

@@ -77,9 +77,7 @@ def _energy_during_contact(n_steps):
     h, r, big_r, k = 0.01, 1e-3, 0.009, 6e5
     a = np.array([[-h, -h], [h, -h], [h, h], [-h, h]], dtype=float) / 2
     b = geo.regular_polygon(5, big_r, rotation=-np.pi / 2, center=(0.002, h / 2 + 2 * r + big_r))
-    parts = particles_from_polygons(
-        [a, b], r, RHO, velocities=[[0.1, 0.2], [-0.1, -0.6]]
-    )
+    parts = particles_from_polygons([a, b], r, RHO, velocities=[[0.1, 0.2], [-0.1, -0.6]])
     parts = replace(parts, omega=jnp.array([1.0, 5.0]))
     params = make_params(normal_stiffness=k, friction=0.0, gravity=(0, 0))
     t_end = 1.0e-4  # the contact lasts ~2.5e-4 s

@@ -110,7 +110,9 @@ def write_outputs(
     if figures:
         from .. import plot
 
-        summary["figures"] = [str(p) for p in plot.plot_run(io.read_run(out_dir / "run.h5"), out_dir)]
+        summary["figures"] = [
+            str(p) for p in plot.plot_run(io.read_run(out_dir / "run.h5"), out_dir)
+        ]
         io.write_summary(out_dir / "summary.json", summary)
     if vtk:
         io.write_vtk(out_dir / "vtk" / "frame", io.read_run(out_dir / "run.h5"))

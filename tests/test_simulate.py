@@ -1,0 +1,188 @@
+"""Host loop: capacity regrowth is exact, segments do not recompile, a pile settles under
+its weight, bad input is refused with a message naming the fix."""
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxgran import geometry as geo
+from jaxgran.contact import damping_from_restitution
+from jaxgran.integrate import stable_time_step
+from jaxgran.partition import make_grid
+from jaxgran.simulate import SimulationError, simulate
+from jaxgran.state import (
+    box_walls,
+    make_params,
+    make_state,
+    make_walls,
+    particles_from_polygons,
+    replace,
+)
+
+RHO = 12.0
+
+
+def _pile(n_cells=24, seed=3, wall_friction=0.0, k=2e4):
+    width = 0.08
+    cells = geo.voronoi_rectangle(width, 0.06, n_cells, seed, lloyd_iterations=2)
+    r = 5e-4
+    cores = []
+    for c in cells:
+        cen = geo.polygon_centroid(c)
+        c = cen + 0.9 * (c - cen)
+        cores.append(geo.offset_polygon(c, r + 1e-4) + [0.0, 0.2 * cen[1] + 0.002])
+    parts = particles_from_polygons(cores, r, RHO, vertex_capacity=10)
+    m = float(np.median(np.asarray(parts.mass)))
+    params = make_params(
+        normal_stiffness=k,
+        tangential_stiffness=k / 3,
+        friction=0.5,
+        wall_friction=wall_friction,
+        normal_damping=damping_from_restitution(0.2, k, m / 2),
+        tangential_damping=damping_from_restitution(0.2, k, m / 2),
+        skin=1e-3,
+    )
+    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.2)))
+    walls = make_walls(box_walls((0.0, 0.0), (width, 0.12), top=False))
+    grid = make_grid((-0.01, -0.01), (width + 0.01, 0.13), float(parts.bound_radius.max()), 1e-3)
+    return parts, walls, params, grid
+
+
+@pytest.fixture(scope="module")
+def pile():
+    return _pile()
+
+
+def test_small_pair_capacity_grows_and_gives_identical_results(pile):
+    parts, walls, params, grid = pile
+    kw = dict(n_steps=2000, record_every=100, records_per_segment=5, progress=False)
+    ample = simulate(make_state(parts, walls, pair_capacity=400), params, grid, **kw)
+    small = simulate(make_state(parts, walls, pair_capacity=4), params, grid, **kw)
+    assert any("pair capacity" in msg for msg in small.regrows)
+    assert not ample.regrows
+    np.testing.assert_allclose(
+        np.asarray(small.state.particles.pos), np.asarray(ample.state.particles.pos), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(small.state.particles.vel), np.asarray(ample.state.particles.vel), atol=1e-12
+    )
+
+
+def test_small_cell_capacity_grows(pile):
+    parts, walls, params, grid = pile
+    tight = dataclasses.replace(grid, cell_capacity=1)
+    res = simulate(
+        make_state(parts, walls, pair_capacity=400),
+        params,
+        tight,
+        n_steps=500,
+        record_every=100,
+        records_per_segment=5,
+        progress=False,
+    )
+    assert any("cell capacity" in msg for msg in res.regrows)
+    assert res.grid.cell_capacity > 1
+
+
+def test_segments_do_not_recompile(pile):
+    from jaxgran import simulate as sim
+
+    parts, walls, params, grid = pile
+    state = make_state(parts, walls, pair_capacity=400)
+    counted = eqx.debug.assert_max_traces(sim.run_segment.__wrapped__, max_traces=1)
+    jitted = eqx.filter_jit(counted)
+    state, _ = sim.prepare(state, params, grid)
+    for _ in range(3):
+        # new values (time, positions, parameters) but the same shapes: one trace only
+        state, _, err = jitted(state, params, grid, 2, 50)
+        params = replace(params, friction=params.friction * 1.01)
+        assert int(err) == 0
+
+
+def test_pile_settles_and_floor_carries_the_weight():
+    parts, walls, params, grid = _pile(n_cells=30, seed=5, wall_friction=0.0)
+    state = make_state(parts, walls, pair_capacity=200)
+    peak = [0.0]
+
+    def settled(s, rec):
+        peak[0] = max(peak[0], float(rec["kinetic_energy"].max()))
+        return s, bool(rec["kinetic_energy"][-1] < 1e-6 * peak[0] and rec["time"][-1] > 0.05)
+
+    res = simulate(
+        state,
+        params,
+        grid,
+        n_steps=400_000,
+        record_every=200,
+        records_per_segment=10,
+        callback=settled,
+        progress=False,
+    )
+    assert res.stopped_early, "kinetic energy did not decay below 1e-6 of its peak"
+    weight = float(jnp.sum(parts.mass) * 9.81)
+    floor = -float(np.mean(res.series["wall_force"][-3:, 0, 1]))
+    assert floor == pytest.approx(weight, rel=0.01)
+
+
+def test_nan_in_the_state_stops_the_run_with_advice(pile):
+    parts, walls, params, grid = pile
+    bad = replace(parts, vel=parts.vel.at[0, 0].set(jnp.nan))
+    with pytest.raises(ValueError, match="NaN"):
+        make_state(bad, walls)
+    state = make_state(parts, walls, pair_capacity=400)
+    state = replace(state, particles=replace(state.particles, vel=bad.vel))
+    with pytest.raises(SimulationError, match="NaN"):
+        simulate(
+            state, params, grid, n_steps=100, record_every=50, records_per_segment=2, progress=False
+        )
+
+
+def test_escaping_particle_is_reported(pile):
+    parts, walls, params, grid = pile
+    # a particle above the pile flying up out of the domain (grid top at y = 0.13 m)
+    fast = replace(
+        parts,
+        pos=parts.pos.at[-1].set(jnp.array([0.04, 0.115])),
+        vel=parts.vel.at[-1].set(jnp.array([0.0, 2.0])),
+    )
+    state = make_state(fast, walls, pair_capacity=400)
+    with pytest.raises(SimulationError, match="left the simulation domain"):
+        simulate(
+            state,
+            params,
+            grid,
+            n_steps=20_000,
+            record_every=500,
+            records_per_segment=10,
+            progress=False,
+        )
+
+
+@pytest.mark.parametrize(
+    "polys, radius, match",
+    [
+        ([np.array([[0, 0], [1, 0], [1, 1], [0.5, 0.2], [0, 1]])], 0.0, "convex"),
+        ([np.array([[0, 0], [1, 1], [1, 0], [0, 1]])], 0.0, "intersect"),
+        ([np.array([[0.0, 0.0], [1.0, 0.0]])], 0.0, "at least 3 vertices"),
+        ([geo.regular_polygon(4, 1.0)], -1.0, "sphero-radius"),
+        ([np.array([[0.0, np.nan], [1, 0], [0, 1]])], 0.0, "NaN"),
+    ],
+)
+def test_bad_particles_are_refused(polys, radius, match):
+    with pytest.raises(ValueError, match=match):
+        particles_from_polygons(polys, radius, RHO)
+
+
+def test_zero_density_is_refused():
+    with pytest.raises(ValueError, match="density"):
+        particles_from_polygons([geo.regular_polygon(4, 1.0)], 0.1, 0.0)
+
+
+def test_bad_parameters_are_refused():
+    with pytest.raises(ValueError, match="dt"):
+        make_params(dt=-1.0)
+    with pytest.raises(ValueError, match="friction"):
+        make_params(friction=-0.1)
