@@ -1,0 +1,66 @@
+"""The `jaxgran` command end to end on a small deposit: outputs exist and reopen."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxgran import io
+from jaxgran.cli import main
+
+
+@pytest.fixture(scope="module")
+def deposit_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("deposit")
+    code = main(
+        [
+            "run",
+            "deposit",
+            "--quick",
+            "--no-progress",
+            "--out",
+            str(out),
+            "--set",
+            "n_cells=30",
+            "--set",
+            "max_time=0.6",
+            "--set",
+            "box_width=0.12",
+        ]
+    )
+    assert code == 0
+    return out
+
+
+def test_deposit_writes_summary_h5_and_figures(deposit_run):
+    summary = json.loads((deposit_run / "summary.json").read_text())
+    for key in (
+        "n_particles",
+        "steps",
+        "wall_time_s",
+        "final_kinetic_energy_J",
+        "packing_fraction",
+        "bottom_reaction_over_weight",
+    ):
+        assert key in summary
+    assert summary["n_particles"] > 10
+    assert 0.3 < summary["packing_fraction"] < 1.0
+    # walls are frictional in the deposit, so the floor carries most but not all the weight
+    assert 0.8 < summary["bottom_reaction_over_weight"] < 1.05
+    for png in ("packing.png", "kinetic_energy.png"):
+        assert (deposit_run / png).stat().st_size > 1000
+    run = io.read_run(deposit_run / "run.h5")
+    assert run["frames"]["pos"].shape[0] >= 2
+    assert np.all(np.isfinite(run["series"]["kinetic_energy"]))
+    assert run["metadata"]["scene"] == "deposit"
+
+
+def test_plot_command_redraws(deposit_run, tmp_path):
+    assert main(["plot", str(deposit_run / "run.h5"), "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "packing.png").exists()
+
+
+def test_bad_setting_is_refused(capsys):
+    assert main(["run", "deposit", "--set", "no_such_key=1"]) == 2
+    assert "valid settings" in capsys.readouterr().err
+    assert main(["run", "no-such-scene"]) == 2
