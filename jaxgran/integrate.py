@@ -86,6 +86,16 @@ def wall_velocity(walls: Walls, thickness: Array) -> Array:
     return jnp.where((walls.mode == WALL_SERVO)[:, None], servo, v)
 
 
+def servo_gain_for(length: float, thickness: float, stiffness: float, response_time: float):
+    """Servo gain (m/(s Pa)) that makes a wall pressing on contacts of total stiffness
+    ``stiffness`` (N/m) reach its target stress with time constant ``response_time`` (s):
+    ``d sigma/dt = -(K gain / (L t)) (sigma - target)``, so ``gain = L t / (K tau)``. Keep
+    ``tau`` well above the contact period (several hundred steps) or the loop oscillates."""
+    if min(length, thickness, stiffness, response_time) <= 0:
+        raise ValueError("length, thickness, stiffness and response_time must be positive")
+    return length * thickness / (stiffness * response_time)
+
+
 def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
     """Advance one time step. Returns the new state and the error bits of this step."""
     p = state.particles

@@ -186,3 +186,60 @@ def test_bad_parameters_are_refused():
         make_params(dt=-1.0)
     with pytest.raises(ValueError, match="friction"):
         make_params(friction=-0.1)
+
+
+def test_servo_wall_holds_target_stress_and_bar_moves_at_its_velocity():
+    from jaxgran.state import WALL_SERVO, WALL_VELOCITY, wall
+
+    h, r, k = 0.02, 1e-3, 2e4
+    block = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float) + [0.03, r]
+    parts = particles_from_polygons([block], r, RHO)
+    m = float(parts.mass[0])
+    width = 0.08
+    params = make_params(
+        normal_stiffness=k,
+        tangential_stiffness=k,
+        friction=0.5,
+        normal_damping=damping_from_restitution(0.1, k, m),
+        tangential_damping=damping_from_restitution(0.1, k, m),
+        skin=1e-3,
+    )
+    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.2)))
+    thickness = float(params.thickness)
+    target = 40.0  # Pa over width x thickness: 3.2 N, ~10x the block's weight
+    walls = make_walls(
+        box_walls((0.0, 0.0), (width, 0.12), top=False)
+        + [
+            wall(
+                (0.0, h + 2 * r + 2e-3),
+                (0.0, -1.0),
+                mode=WALL_SERVO,
+                target_stress=target,
+                servo_gain=2e-4,
+                max_speed=0.05,
+                length=width,
+            ),
+            wall((-0.005, 0.0), (1.0, 0.0), mode=WALL_VELOCITY, velocity=(0.0, 0.01)),
+        ]
+    )
+    grid = make_grid((-0.01, -0.01), (width + 0.01, 0.13), float(parts.bound_radius[0]), 1e-3)
+    state = make_state(parts, walls, pair_capacity=4)
+    res = simulate(
+        state,
+        params,
+        grid,
+        n_steps=20_000,
+        record_every=500,
+        records_per_segment=10,
+        progress=False,
+    )
+    wf = res.series["wall_force"]
+    stress = wf[:, 3, 1] / (width * thickness)  # the block pushes the lid up (+y)
+    assert np.mean(stress[-3:]) == pytest.approx(target, rel=0.01)
+    # momentum balance: the floor carries the lid's load plus the weight
+    floor = -np.mean(wf[-3:, 0, 1])
+    assert floor == pytest.approx(target * width * thickness + m * 9.81, rel=0.01)
+    # the velocity-driven wall moved at its prescribed speed
+    pts = res.series["wall_point"][:, 4]
+    t = res.series["time"]
+    assert (pts[-1, 1] - pts[0, 1]) / (t[-1] - t[0]) == pytest.approx(0.01, rel=1e-9)
