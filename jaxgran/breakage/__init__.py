@@ -1,1 +1,14 @@
-"""Particle breakage: criteria, subset separation, replacement."""
+"""Particle breakage: criteria (DSM connection points, averaged-stress methods), the subset
+separation method, and replacement."""
+
+from .criteria import ConnectionPoints as ConnectionPoints
+from .criteria import CriterionResult as CriterionResult
+from .criteria import averaged_stress as averaged_stress
+from .criteria import breakage_type as breakage_type
+from .criteria import connection_points as connection_points
+from .criteria import cross_cut_criterion as cross_cut_criterion
+from .criteria import fracture_planes as fracture_planes
+from .criteria import mohr_coulomb_criterion as mohr_coulomb_criterion
+from .criteria import principal_stresses as principal_stresses
+from .criteria import split_cell_criterion as split_cell_criterion
+from .ssm import split_convex as split_convex
