@@ -135,6 +135,13 @@ def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
     gravity = jnp.where(p.active[:, None], p.mass[:, None] * params.gravity[None, :], 0.0)
     force = f_pp + f_w + gravity
     torque = t_pp + t_w
+    bonds = state.bonds
+    if bonds is not None:  # static: a scene with bonds compiles its own step
+        from .bonds import bond_forces
+
+        f_b, t_b, bonds = bond_forces(p, bonds, walls, dt)
+        force = force + f_b
+        torque = torque + t_b
 
     # kick (half)
     vel = vel + 0.5 * dt * force * inv_m[:, None]
@@ -151,7 +158,7 @@ def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
         contacts=contacts,
         time=state.time + dt,
         step=state.step + 1,
-        bonds=state.bonds,
+        bonds=bonds,
     )
     return new, errors.astype(jnp.int32)
 
