@@ -29,6 +29,8 @@ from jax import Array
 
 from .state import Contacts, Params, Particles, Walls
 
+Vec = tuple  # (x, y) pair of arrays of one shape
+
 _TINY = 1e-30
 
 
@@ -41,50 +43,18 @@ def world_vertices(p: Particles) -> Array:
     return jnp.stack([wx, wy], axis=-1)
 
 
-def _dot(a: Array, b: Array) -> Array:
-    """Dot product over the last axis (size 2), written out: XLA's CPU backend reduces tiny
-    trailing axes far more slowly than it fuses the explicit sum."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
-
-
-def _safe_norm(v: Array) -> tuple[Array, Array]:
-    """|v| and v/|v| with finite values and gradients at v = 0 (double-where)."""
-    n2 = _dot(v, v)
-    ok = n2 > _TINY
-    n = jnp.sqrt(jnp.where(ok, n2, 1.0))
-    unit = jnp.where(ok[..., None], v / n[..., None], 0.0)
-    return jnp.where(ok, n, 0.0), unit
-
-
-def edge_frames(wv: Array, n_verts: Array) -> tuple[Array, Array, Array]:
-    """Per-edge unit outward normal ``[..., V, 2]``, unit tangent ``[..., V, 2]`` and length
-    ``[..., V]`` (m) of CCW core polygons. Edge k runs from vertex k to vertex k+1 (or 0);
-    padded edges (k >= n) get length 0 and a zero normal. A disc (n = 1) has one zero-length
-    edge at its centre."""
-    k = jnp.arange(wv.shape[-2])
-    n = jnp.asarray(n_verts)[..., None]
-    nxt = jnp.where((k + 1 < n)[..., None], jnp.roll(wv, -1, axis=-2), wv[..., 0:1, :])
-    length, tangent = _safe_norm(nxt - wv)
-    real = k < n
-    length = jnp.where(real, length, 0.0)
-    tangent = jnp.where(real[..., None], tangent, 0.0)
-    normal = jnp.stack([tangent[..., 1], -tangent[..., 0]], axis=-1)
-    return normal, tangent, length
-
-
-def closest_features(va: Array, na: Array, vb: Array, nb: Array, frames=None):
+def closest_features(va: Array, na: Array, vb: Array, nb: Array):
     """Closest point on core polygon B of every vertex of core polygon A.
 
     For a convex polygon the closest feature of an outside point is found from the edge of
     largest signed distance ``h_k = (x - a_k) . n_k``: if the point projects inside that edge
     the contact is vertex-edge with gap ``h_k``; otherwise the closest point is the edge's end
     on that side (vertex-vertex, gap = distance). A point inside B gets its least-penetrated
-    edge (the way out). Written with leading batch axes ``...`` (one pair or ``C`` pairs).
+    edge (the way out). Leading batch axes ``...`` are allowed (one pair or ``C`` pairs).
 
     Args:
         va, vb: world vertices ``[..., V, 2]`` (m), CCW, padded by repeating the last vertex.
         na, nb: real vertex counts ``[...]``.
-        frames: optional precomputed :func:`edge_frames` of B.
 
     Returns:
         gap ``[..., V]``: signed distance from the vertex to B's core (m), negative if inside.
@@ -93,39 +63,19 @@ def closest_features(va: Array, na: Array, vb: Array, nb: Array, frames=None):
         vertex ``[..., V]``: index of B's vertex if the closest point is a vertex, else -1.
         valid ``[..., V]``: the vertex slot is real.
     """
-    v = va.shape[-2]
-    k = jnp.arange(v)
-    nb_ = jnp.asarray(nb)[..., None]
-    normal_e, tangent_e, length_e = edge_frames(vb, nb) if frames is None else frames
-    rel = va[..., :, None, :] - vb[..., None, :, :]  # [..., Va, Ve, 2]
-    h = _dot(rel, normal_e[..., None, :, :])
-    h = jnp.where((k < nb_)[..., None, :], h, -jnp.inf)
-    best = jnp.argmax(h, axis=-1)  # [..., Va]
-    take = lambda x: jnp.take_along_axis(x, best[..., None], axis=-2)  # x: [..., Ve, 2]
-    a_b = take(vb)
-    n_b = take(normal_e)
-    t_b = take(tangent_e)
-    l_b = jnp.take_along_axis(length_e, best, axis=-1)
-    d = va - a_b
-    s = _dot(d, t_b)
-    interior = (s > 0.0) & (s < l_b) & (nb_ >= 2)
-    nxt = jnp.where(best + 1 < nb_, best + 1, 0)
-    w = jnp.where((s <= 0.0)[..., None], a_b, a_b + l_b[..., None] * t_b)
-    dist, n_pt = _safe_norm(va - w)
-    n_pt = jnp.where((dist > 0)[..., None], n_pt, n_b)
-    normal = jnp.where(interior[..., None], n_b, n_pt)
-    gap = jnp.where(interior, _dot(d, n_b), dist)
-    point = jnp.where(interior[..., None], a_b + s[..., None] * t_b, w)
-    vertex = jnp.where(interior, -1, jnp.where(s <= 0.0, best, nxt))
-    valid = k < jnp.asarray(na)[..., None]
-    return gap, normal, point, vertex, valid
+    na, nb = jnp.asarray(na), jnp.asarray(nb)
+    frames = _frames_soa(vb[..., 0], vb[..., 1], nb)
+    gap, normal, point, vertex, valid = _closest_soa(
+        va[..., 0], va[..., 1], na, vb[..., 0], vb[..., 1], nb, frames
+    )
+    return gap, jnp.stack(normal, axis=-1), jnp.stack(point, axis=-1), vertex, valid
 
 
 def contact_law(
     overlap: Array,
-    normal: Array,
-    v_rel: Array,
-    xi: Array,
+    normal: Vec,
+    v_rel: Vec,
+    xi: Vec,
     m_eff: Array,
     active: Array,
     stiffness_n: Array,
@@ -134,9 +84,12 @@ def contact_law(
     damping_t: Array,
     friction: Array,
     dt: Array,
-    v_damp: Array | None = None,
-) -> tuple[Array, Array, Array]:
-    """Linear spring-dashpot normal force and Cundall-Strack friction for one contact.
+    v_damp: Vec | None = None,
+) -> tuple[Vec, Vec, Array]:
+    """Linear spring-dashpot normal force and Cundall-Strack friction (paper 002 Eq. 6-10).
+
+    Vectors are ``(x, y)`` pairs of arrays of one shape (structure of arrays: XLA's CPU
+    backend handles a trailing axis of size 2 poorly).
 
     Args:
         overlap: delta (m), normal: unit normal towards the body receiving the force,
@@ -150,55 +103,113 @@ def contact_law(
 
     Returns: (force on the body (N), new xi (m), normal force magnitude F_n (N)).
     """
-    v_damp = v_rel if v_damp is None else v_damp
-    vn_d = _dot(v_damp, normal)
-    vt_d = v_damp - vn_d[..., None] * normal
+    nx, ny = normal
+    vdx, vdy = v_rel if v_damp is None else v_damp
+    vn_d = vdx * nx + vdy * ny
+    vtdx, vtdy = vdx - vn_d * nx, vdy - vn_d * ny
     fn = stiffness_n * overlap - damping_n * m_eff * vn_d
     fn = jnp.where(active, jnp.maximum(fn, 0.0), 0.0)
-    vn = _dot(v_rel, normal)
-    vt = v_rel - vn[..., None] * normal
+    vx, vy = v_rel
+    vn = vx * nx + vy * ny
+    vtx, vty = vx - vn * nx, vy - vn * ny
     # rotate the spring into the current tangent plane, keeping its length
-    xi_len, _ = _safe_norm(xi)
-    xi_t = xi - _dot(xi, normal)[..., None] * normal
-    xi_t_len, xi_t_dir = _safe_norm(xi_t)
-    xi = jnp.where((xi_t_len > 0)[..., None], xi_t_dir * xi_len[..., None], 0.0)
-    xi = xi + vt * dt
-    ft = -stiffness_t * xi - damping_t * m_eff[..., None] * vt_d
-    ft_len, ft_dir = _safe_norm(ft)
+    xx, xy = xi
+    xi_len = _norm(xx, xy)
+    xin = xx * nx + xy * ny
+    tx, ty = xx - xin * nx, xy - xin * ny
+    t_len = _norm(tx, ty)
+    scale = jnp.where(t_len > 0, xi_len / jnp.where(t_len > 0, t_len, 1.0), 0.0)
+    xx = tx * scale + vtx * dt
+    xy = ty * scale + vty * dt
+    ftx = -stiffness_t * xx - damping_t * m_eff * vtdx
+    fty = -stiffness_t * xy - damping_t * m_eff * vtdy
+    ft_len = _norm(ftx, fty)
     cap = friction * fn
     slip = ft_len > cap
-    ft = jnp.where(slip[..., None], cap[..., None] * ft_dir, ft)
-    safe_kt = jnp.where(stiffness_t > 0, stiffness_t, 1.0)
-    xi = jnp.where(slip[..., None], jnp.where(stiffness_t > 0, -ft / safe_kt, 0.0), xi)
-    act = active[..., None]
-    force = jnp.where(act, fn[..., None] * normal + ft, 0.0)
-    return force, jnp.where(act, xi, 0.0), fn
+    shrink = jnp.where(slip, cap / jnp.where(slip, ft_len, 1.0), 1.0)
+    ftx, fty = ftx * shrink, fty * shrink
+    inv_kt = jnp.where(stiffness_t > 0, 1.0 / jnp.where(stiffness_t > 0, stiffness_t, 1.0), 0.0)
+    xx = jnp.where(slip, -ftx * inv_kt, xx)
+    xy = jnp.where(slip, -fty * inv_kt, xy)
+    fx = jnp.where(active, fn * nx + ftx, 0.0)
+    fy = jnp.where(active, fn * ny + fty, 0.0)
+    return (fx, fy), (jnp.where(active, xx, 0.0), jnp.where(active, xy, 0.0)), fn
 
 
-def _cross(a: Array, b: Array) -> Array:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+def _norm(x: Array, y: Array) -> Array:
+    """sqrt(x^2 + y^2) with a finite gradient at 0 (double-where)."""
+    n2 = x * x + y * y
+    ok = n2 > _TINY
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
 
-def _omega_cross(w: Array, r: Array) -> Array:
-    """(w z) x r for scalar w."""
-    return jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
+def _closest_soa(ax, ay, na, bx, by, nb, frames):
+    """Structure-of-arrays core of :func:`closest_features` (arrays ``[..., V]``)."""
+    k = jnp.arange(ax.shape[-1])
+    nb_ = nb[..., None]
+    enx, eny, etx, ety, elen = frames
+    h = (ax[..., :, None] - bx[..., None, :]) * enx[..., None, :] + (
+        ay[..., :, None] - by[..., None, :]
+    ) * eny[..., None, :]
+    h = jnp.where((k < nb_)[..., None, :], h, -jnp.inf)
+    best = jnp.argmax(h, axis=-1)
+    take = lambda x: jnp.take_along_axis(x, best, axis=-1)
+    abx, aby, nbx, nby, tbx, tby, lb = (take(x) for x in (bx, by, enx, eny, etx, ety, elen))
+    dx, dy = ax - abx, ay - aby
+    s = dx * tbx + dy * tby
+    interior = (s > 0.0) & (s < lb) & (nb_ >= 2)
+    at_start = s <= 0.0
+    wx = jnp.where(at_start, abx, abx + lb * tbx)
+    wy = jnp.where(at_start, aby, aby + lb * tby)
+    ex, ey = ax - wx, ay - wy
+    dist = _norm(ex, ey)
+    ok = dist > 0
+    inv = jnp.where(ok, 1.0 / jnp.where(ok, dist, 1.0), 0.0)
+    ux = jnp.where(ok, ex * inv, nbx)
+    uy = jnp.where(ok, ey * inv, nby)
+    normal = (jnp.where(interior, nbx, ux), jnp.where(interior, nby, uy))
+    gap = jnp.where(interior, dx * nbx + dy * nby, dist)
+    point = (jnp.where(interior, abx + s * tbx, wx), jnp.where(interior, aby + s * tby, wy))
+    nxt = jnp.where(best + 1 < nb_, best + 1, 0)
+    vertex = jnp.where(interior, -1, jnp.where(at_start, best, nxt))
+    valid = k < na[..., None]
+    return gap, normal, point, vertex, valid
 
 
-def _pair_geometry(va: Array, na: Array, vb: Array, nb: Array, fa=None, fb=None):
-    """Both directions of pairs ``[..., V, 2]``: i's vertices on j, then j's vertices on i.
+def _frames_soa(wx, wy, n_verts):
+    k = jnp.arange(wx.shape[-1])
+    n = n_verts[..., None]
+    last = k + 1 < n
+    nx_ = jnp.where(last, jnp.roll(wx, -1, axis=-1), wx[..., 0:1])
+    ny_ = jnp.where(last, jnp.roll(wy, -1, axis=-1), wy[..., 0:1])
+    ex, ey = nx_ - wx, ny_ - wy
+    length = _norm(ex, ey)
+    real = (k < n) & (length > 0)
+    inv = jnp.where(real, 1.0 / jnp.where(real, length, 1.0), 0.0)
+    tx, ty = ex * inv, ey * inv
+    return ty, -tx, tx, ty, jnp.where(real, length, 0.0)
 
-    Returns gap, normal, closest point and a keep mask stacked on a direction axis
-    ``[..., 2, V(, 2)]``."""
-    g0, n0, q0, vx0, ok0 = closest_features(va, na, vb, nb, fb)
-    g1, n1, q1, vx1, ok1 = closest_features(vb, nb, va, na, fa)
-    idx = jnp.arange(va.shape[-2])
-    # vertex-vertex: keep when mutual (b is a's closest and a is b's), in direction 0 only
+
+def _pair_geometry_soa(wx, wy, nv, frames, i, j):
+    """Both directions for pairs (i, j): i's vertices on j, then j's on i, stacked on a
+    direction axis ``[C, 2, V]``; vertex-vertex contacts kept once (mutual, direction 0)."""
+    fi = tuple(f[i] for f in frames)
+    fj = tuple(f[j] for f in frames)
+    xi_, yi_, ni = wx[i], wy[i], nv[i]
+    xj_, yj_, nj = wx[j], wy[j], nv[j]
+    g0, n0, q0, vx0, ok0 = _closest_soa(xi_, yi_, ni, xj_, yj_, nj, fj)
+    g1, n1, q1, vx1, ok1 = _closest_soa(xj_, yj_, nj, xi_, yi_, ni, fi)
+    idx = jnp.arange(wx.shape[-1])
     back = jnp.take_along_axis(vx1, jnp.clip(vx0, 0), axis=-1)
-    mutual0 = (vx0 >= 0) & (back == idx)
-    keep0 = ok0 & ((vx0 < 0) | mutual0)
+    keep0 = ok0 & ((vx0 < 0) | (back == idx))
     keep1 = ok1 & (vx1 < 0)
-    stack = lambda x, y: jnp.stack([x, y], axis=-3 if x.ndim > keep0.ndim else -2)
-    return stack(g0, g1), stack(n0, n1), stack(q0, q1), stack(keep0, keep1)
+    st = lambda a, b: jnp.stack([a, b], axis=1)
+    return (
+        st(g0, g1),
+        (st(n0[0], n1[0]), st(n0[1], n1[1])),
+        (st(q0[0], q1[0]), st(q0[1], q1[1])),
+        st(keep0, keep1),
+    )
 
 
 def pair_forces(
@@ -210,47 +221,51 @@ def pair_forces(
     :func:`contact_law`); ``p.vel``, ``p.omega`` drive the tangential spring.
 
     Returns:
-        force ``[P, 2]`` (N), torque ``[P]`` (N m), new tangential history ``[C, 2, V, 2]``,
-        and per-contact data (``point [C,2,V,2]``, ``force`` on the vertex owner, ``active``,
-        ``normal_force``) for post-processing (force chains, BEM loading).
+        force ``[P, 2]`` (N), torque ``[P]`` (N m), new tangential history ``[2, C, 2, V]``,
+        and per-contact data (``point [C,2,V,2]``, ``force`` on the vertex owner
+        ``[C,2,V,2]``, ``active [C,2,V]``, ``normal_force``) for post-processing (force
+        chains, BEM loading); unused outputs cost nothing under jit.
     """
     n_p = p.pos.shape[0]
     pairs = contacts.pairs
     pair_ok = pairs[:, 0] < n_p
     i = jnp.where(pair_ok, pairs[:, 0], 0)
     j = jnp.where(pair_ok, pairs[:, 1], 0)
-    wv = world_vertices(p)
-    frames = edge_frames(wv, p.n_verts)
-    fi = tuple(f[i] for f in frames)
-    fj = tuple(f[j] for f in frames)
-    gap, normal, q, keep = _pair_geometry(wv[i], p.n_verts[i], wv[j], p.n_verts[j], fi, fj)
-    # gap etc: [C, 2, V(, 2)]
+    c, s = jnp.cos(p.angle)[:, None], jnp.sin(p.angle)[:, None]
+    bx, by = p.verts[..., 0], p.verts[..., 1]
+    wx = c * bx - s * by + p.pos[:, 0:1]
+    wy = s * bx + c * by + p.pos[:, 1:2]
+    frames = _frames_soa(wx, wy, p.n_verts)
+    gap, (nx, ny), (qx, qy), keep = _pair_geometry_soa(wx, wy, p.n_verts, frames, i, j)
     owner = jnp.stack([i, j], axis=1)  # [C, 2] body whose vertex is tested
     other = jnp.stack([j, i], axis=1)
-    r_own = p.radius[owner][..., None]
     r_oth = p.radius[other][..., None]
-    overlap = r_own + r_oth - gap
+    overlap = p.radius[owner][..., None] + r_oth - gap
     both_active = (pair_ok & p.active[i] & p.active[j])[:, None, None]
     act = keep & (overlap > 0) & both_active
     # contact point: middle of the overlap, measured from the other body's core
-    x_c = q + (r_oth - 0.5 * overlap)[..., None] * normal
-    # mixing
+    off = r_oth - 0.5 * overlap
+    xcx, xcy = qx + off * nx, qy + off * ny
     inv_m = jnp.where(p.fixed, 0.0, 1.0 / p.mass)
     m_eff = 1.0 / jnp.maximum(inv_m[owner] + inv_m[other], _TINY)
     m_eff = jnp.broadcast_to(m_eff[..., None], overlap.shape)
-    # kinematics at the contact point
-    x_own = p.pos[owner][:, :, None, :]
-    x_oth = p.pos[other][:, :, None, :]
-    v_own = p.vel[owner][:, :, None, :] + _omega_cross(p.omega[owner][..., None], x_c - x_own)
-    v_oth = p.vel[other][:, :, None, :] + _omega_cross(p.omega[other][..., None], x_c - x_oth)
-    vd, wd = (p.vel, p.omega) if damp_velocity is None else damp_velocity
-    vd_own = vd[owner][:, :, None, :] + _omega_cross(wd[owner][..., None], x_c - x_own)
-    vd_oth = vd[other][:, :, None, :] + _omega_cross(wd[other][..., None], x_c - x_oth)
-    force, xi, fn = contact_law(
+    g = lambda a, idx: a[idx][..., None]
+    rox, roy = xcx - g(p.pos[:, 0], owner), xcy - g(p.pos[:, 1], owner)
+    rtx, rty = xcx - g(p.pos[:, 0], other), xcy - g(p.pos[:, 1], other)
+
+    def rel_vel(vel, omega):
+        wo, wt = g(omega, owner), g(omega, other)
+        vx = g(vel[:, 0], owner) - wo * roy - g(vel[:, 0], other) + wt * rty
+        vy = g(vel[:, 1], owner) + wo * rox - g(vel[:, 1], other) - wt * rtx
+        return vx, vy
+
+    v_rel = rel_vel(p.vel, p.omega)
+    v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
+    (fx, fy), xi, fn = contact_law(
         overlap,
-        normal,
-        v_own - v_oth,
-        contacts.xi,
+        (nx, ny),
+        v_rel,
+        (contacts.xi[0], contacts.xi[1]),
         m_eff,
         act,
         params.normal_stiffness,
@@ -259,50 +274,65 @@ def pair_forces(
         params.tangential_damping,
         params.friction,
         params.dt,
-        v_damp=vd_own - vd_oth,
+        v_damp=v_damp,
     )
-    torque_own = _cross(x_c - x_own, force)
-    torque_oth = -_cross(x_c - x_oth, force)
-    f_own = force.sum(axis=2)  # [C, 2, 2]
-    t_own = torque_own.sum(axis=2)
-    t_oth = torque_oth.sum(axis=2)
+    t_own = (rox * fy - roy * fx).sum(axis=2)  # [C, 2]
+    t_oth = -(rtx * fy - rty * fx).sum(axis=2)
+    f_own = jnp.stack([fx.sum(axis=2), fy.sum(axis=2)], axis=-1)  # [C, 2 dir, 2]
     seg = lambda data, idx: jax.ops.segment_sum(data, idx, num_segments=n_p)
-    f = seg(f_own[:, 0], i) + seg(f_own[:, 1], j) - seg(f_own[:, 0], j) - seg(f_own[:, 1], i)
-    t = seg(t_own[:, 0], i) + seg(t_own[:, 1], j) + seg(t_oth[:, 0], j) + seg(t_oth[:, 1], i)
-    info = {"point": x_c, "force": force, "active": act, "normal_force": fn}
-    return f, t, xi, info
+    f = seg(f_own[:, 0] - f_own[:, 1], i) + seg(f_own[:, 1] - f_own[:, 0], j)
+    t = seg(t_own[:, 0] + t_oth[:, 1], i) + seg(t_own[:, 1] + t_oth[:, 0], j)
+    info = {
+        "point": jnp.stack([xcx, xcy], axis=-1),
+        "force": jnp.stack([fx, fy], axis=-1),
+        "active": act,
+        "normal_force": fn,
+    }
+    return f, t, jnp.stack(xi), info
 
 
 def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp_velocity=None):
     """Forces between particle vertices (discs of radius ``radius``) and planar walls.
 
-    Returns force ``[P, 2]`` (N), torque ``[P]`` (N m), new history ``[P, W, V, 2]``, force on
-    each wall ``[W, 2]`` (N), and per-contact data.
+    Returns force ``[P, 2]`` (N), torque ``[P]`` (N m), new history ``[2, P, W, V]``, force on
+    each wall ``[W, 2]`` (N), and per-contact data (``point``/``force`` ``[P, W, V, 2]``).
     """
-    wv = world_vertices(p)  # [P, V, 2]
-    n_v = wv.shape[1]
-    rel = wv[:, None, :, :] - walls.point[None, :, None, :]  # [P, W, V, 2]
-    nrm = walls.normal[None, :, None, :]
-    gap = _dot(rel, nrm)
-    tan = jnp.stack([-walls.normal[:, 1], walls.normal[:, 0]], axis=-1)[None, :, None, :]
-    s = _dot(rel, tan)
-    inside = (s >= walls.extent[None, :, None, 0]) & (s <= walls.extent[None, :, None, 1])
-    vert_ok = jnp.arange(n_v)[None, None, :] < p.n_verts[:, None, None]
-    overlap = p.radius[:, None, None] - gap
-    act = inside & vert_ok & (overlap > 0) & p.active[:, None, None] & walls.active[None, :, None]
-    normal = jnp.broadcast_to(nrm, rel.shape)
-    x_c = wv[:, None, :, :] - (p.radius[:, None, None] - 0.5 * overlap)[..., None] * normal
-    r = x_c - p.pos[:, None, None, :]
-    v_p = p.vel[:, None, None, :] + _omega_cross(p.omega[:, None, None], r)
-    v_rel = v_p - walls.vel[None, :, None, :]
-    vd, wd = (p.vel, p.omega) if damp_velocity is None else damp_velocity
-    v_damp = vd[:, None, None, :] + _omega_cross(wd[:, None, None], r) - walls.vel[None, :, None, :]
-    m_eff = jnp.broadcast_to(p.mass[:, None, None], overlap.shape)
-    force, xi, fn = contact_law(
+    c, s = jnp.cos(p.angle)[:, None], jnp.sin(p.angle)[:, None]
+    bx, by = p.verts[..., 0], p.verts[..., 1]
+    wx = (c * bx - s * by + p.pos[:, 0:1])[:, None, :]  # [P, 1, V]
+    wy = (s * bx + c * by + p.pos[:, 1:2])[:, None, :]
+    n_v = wx.shape[-1]
+    e = lambda a: a[None, :, None]  # wall array [W] -> [1, W, 1]
+    nx, ny = e(walls.normal[:, 0]), e(walls.normal[:, 1])
+    relx, rely = wx - e(walls.point[:, 0]), wy - e(walls.point[:, 1])
+    gap = relx * nx + rely * ny
+    s_t = -relx * ny + rely * nx
+    inside = (s_t >= e(walls.extent[:, 0])) & (s_t <= e(walls.extent[:, 1]))
+    vert_ok = (jnp.arange(n_v)[None, :] < p.n_verts[:, None])[:, None, :]
+    rad = p.radius[:, None, None]
+    overlap = rad - gap
+    act = inside & vert_ok & (overlap > 0) & p.active[:, None, None] & e(walls.active)
+    off = rad - 0.5 * overlap
+    xcx, xcy = wx - off * nx, wy - off * ny
+    rx, ry = xcx - p.pos[:, 0, None, None], xcy - p.pos[:, 1, None, None]
+    shape = overlap.shape
+    nxb, nyb = jnp.broadcast_to(nx, shape), jnp.broadcast_to(ny, shape)
+
+    def rel_vel(vel, omega):
+        w = omega[:, None, None]
+        return (
+            vel[:, 0, None, None] - w * ry - e(walls.vel[:, 0]),
+            vel[:, 1, None, None] + w * rx - e(walls.vel[:, 1]),
+        )
+
+    v_rel = rel_vel(p.vel, p.omega)
+    v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
+    m_eff = jnp.broadcast_to(p.mass[:, None, None], shape)
+    (fx, fy), xi, fn = contact_law(
         overlap,
-        normal,
+        (nxb, nyb),
         v_rel,
-        wall_xi,
+        (wall_xi[0], wall_xi[1]),
         m_eff,
         act,
         params.normal_stiffness,
@@ -313,11 +343,16 @@ def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp
         params.dt,
         v_damp=v_damp,
     )
-    f = force.sum(axis=(1, 2))
-    t = _cross(r, force).sum(axis=(1, 2))
-    on_wall = -force.sum(axis=(0, 2))
-    info = {"point": x_c, "force": force, "active": act, "normal_force": fn}
-    return f, t, xi, on_wall, info
+    f = jnp.stack([fx.sum(axis=(1, 2)), fy.sum(axis=(1, 2))], axis=-1)
+    t = (rx * fy - ry * fx).sum(axis=(1, 2))
+    on_wall = -jnp.stack([fx.sum(axis=(0, 2)), fy.sum(axis=(0, 2))], axis=-1)
+    info = {
+        "point": jnp.stack([xcx, xcy], axis=-1),
+        "force": jnp.stack([fx, fy], axis=-1),
+        "active": act,
+        "normal_force": fn,
+    }
+    return f, t, jnp.stack(xi), on_wall, info
 
 
 def restitution_of_damping(zeta: float) -> float:

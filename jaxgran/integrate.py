@@ -137,11 +137,12 @@ def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
     torque = t_pp + t_w
     bonds = state.bonds
     if bonds is not None:  # static: a scene with bonds compiles its own step
-        from .bonds import bond_forces
+        from .bonds import bond_forces, force_on_walls
 
         f_b, t_b, bonds = bond_forces(p, bonds, walls, dt)
         force = force + f_b
         torque = torque + t_b
+        on_wall = on_wall + force_on_walls(bonds, walls.point.shape[0])
 
     # kick (half)
     vel = vel + 0.5 * dt * force * inv_m[:, None]
@@ -173,7 +174,14 @@ def initial_forces(state: SimState, params: Params, grid: Grid) -> tuple[SimStat
     gravity = jnp.where(p.active[:, None], p.mass[:, None] * params.gravity[None, :], 0.0)
     # springs start from zero: the evaluation above only primes them with v_t dt
     del xi, wall_xi
-    p = replace(p, force=f_pp + f_w + gravity, torque=t_pp + t_w)
+    force, torque = f_pp + f_w + gravity, t_pp + t_w
+    if state.bonds is not None:
+        from .bonds import bond_forces, force_on_walls
+
+        f_b, t_b, bonds = bond_forces(p, state.bonds, state.walls, 0.0)
+        force, torque = force + f_b, torque + t_b
+        on_wall = on_wall + force_on_walls(bonds, state.walls.point.shape[0])
+    p = replace(p, force=force, torque=torque)
     return (
         SimState(
             particles=p,

@@ -119,8 +119,8 @@ def build_pairs(
     pairs = jnp.stack([pi, pj], axis=1)
     where_old = _lex_search(contacts.pairs, pairs)
     xi = jnp.where(
-        ((where_old >= 0) & ok)[:, None, None, None],
-        contacts.xi[jnp.clip(where_old, 0)],
+        ((where_old >= 0) & ok)[None, :, None, None],
+        contacts.xi[:, jnp.clip(where_old, 0)],
         0.0,
     )
     new = Contacts(

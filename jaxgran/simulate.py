@@ -121,9 +121,9 @@ def grow_pairs(contacts: Contacts, new_capacity: int) -> Contacts:
     pairs = jnp.concatenate(
         [contacts.pairs, jnp.full((extra, 2), sentinel, contacts.pairs.dtype)], axis=0
     )
-    xi = jnp.concatenate(
-        [contacts.xi, jnp.zeros((extra,) + contacts.xi.shape[1:], contacts.xi.dtype)], axis=0
-    )
+    shape = list(contacts.xi.shape)
+    shape[1] = extra
+    xi = jnp.concatenate([contacts.xi, jnp.zeros(shape, contacts.xi.dtype)], axis=1)
     return replace(contacts, pairs=pairs, xi=xi)
 
 

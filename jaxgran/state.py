@@ -131,9 +131,9 @@ class Contacts(eqx.Module):
         pairs: ``[C, 2]`` int32 particle indices (i < j), padded with the sentinel ``P``; sorted
             by key ``i * P + j`` so the history can be carried over a rebuild by search.
         n_pairs: number of valid pairs (int32 scalar).
-        xi: tangential spring ``[C, 2, V, 2]`` (m) per pair, per direction (0: vertices of i
-            against j; 1: vertices of j against i) and per vertex.
-        wall_xi: tangential spring against walls ``[P, W, V, 2]`` (m).
+        xi: tangential spring ``[2, C, 2, V]`` (m): (x, y) component first, then per pair, per
+            direction (0: vertices of i against j; 1: vertices of j against i) and per vertex.
+        wall_xi: tangential spring against walls ``[2, P, W, V]`` (m).
         ref_pos: particle positions at the last rebuild ``[P, 2]`` (m).
         ref_angle: orientations at the last rebuild ``[P]`` (rad).
         n_builds: number of pair-list builds so far (int32 scalar).
@@ -474,8 +474,8 @@ def empty_contacts(
     return Contacts(
         pairs=jnp.full((pair_capacity, 2), n_particles, dtype=jnp.int32),
         n_pairs=jnp.zeros((), jnp.int32),
-        xi=jnp.zeros((pair_capacity, 2, n_vertices, 2), fd),
-        wall_xi=jnp.zeros((n_particles, n_walls, n_vertices, 2), fd),
+        xi=jnp.zeros((2, pair_capacity, 2, n_vertices), fd),
+        wall_xi=jnp.zeros((2, n_particles, n_walls, n_vertices), fd),
         ref_pos=jnp.full((n_particles, 2), jnp.inf, fd),
         ref_angle=jnp.zeros((n_particles,), fd),
         n_builds=jnp.zeros((), jnp.int32),

@@ -40,20 +40,20 @@ class Config:
     max_diameter: float = 0.03  # m
     sphero_radius: float = 1.0e-3  # m
     gap: float = 2.0e-4  # m, extra erosion so no two cells touch at t = 0
-    spread: float = 1.25  # vertical spreading of the initial lattice
+    spread: float = 1.05  # vertical spreading of the initial lattice
     shrink: float = 0.85  # cells are scaled by this about their centroid (room to fall freely)
     normal_stiffness: float = 6.0e5  # N/m, Table I
     tangential_stiffness: float = 2.2e4  # N/m, Table I
     friction: float = 0.74  # Table I
     areal_density: float = 12.0  # kg/m^2, Table I (1.2 g/cm^2)
-    restitution: float = 0.3  # sets G_n (not in Table I)
+    restitution: float = 0.2  # sets G_n and G_t (not in Table I)
     dt: float = 0.0  # s; 0 = safety x stability limit, capped at dt_max
     dt_max: float = 5.0e-4  # s, Table I
     dt_safety: float = 0.15
     skin: float = 2.0e-3  # m, Table I Verlet distance
-    max_time: float = 3.0  # s
+    max_time: float = 1.5  # s
     ke_stop_ratio: float = 1.0e-6
-    min_time: float = 0.2  # s, never stop before this (the pour must start)
+    min_time: float = 0.1  # s, never stop before this (the pour must start)
     record_every: int = 200
     records_per_segment: int = 10
     seed: int = 0
@@ -100,6 +100,9 @@ def build(cfg: Config):
         tangential_stiffness=cfg.tangential_stiffness,
         friction=cfg.friction,
         normal_damping=damping_from_restitution(cfg.restitution, cfg.normal_stiffness, m_typ / 2),
+        tangential_damping=damping_from_restitution(
+            cfg.restitution, cfg.tangential_stiffness, m_typ / 2
+        ),
         skin=cfg.skin,
         thickness=cfg.thickness,
     )
