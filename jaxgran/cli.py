@@ -44,6 +44,17 @@ def main(argv: list[str] | None = None) -> int:
     plot_p.add_argument("--out", type=Path, default=None)
     plot_p.add_argument("--vtk", action="store_true", help="also write VTK files")
 
+    cal = sub.add_parser(
+        "calibrate-eps",
+        help="critical strain-energy level eps (Pa) from a Brazilian critical force",
+    )
+    cal.add_argument("--force", type=float, required=True, help="critical force F (N)")
+    cal.add_argument("--radius", type=float, required=True, help="disc radius R (m)")
+    cal.add_argument("--thickness", type=float, default=0.01, help="thickness t (m)")
+    cal.add_argument("--poisson-ratio", type=float, default=0.3)
+    cal.add_argument("--plane", choices=["stress", "strain"], default="stress")
+    cal.add_argument("--no-bem", action="store_true", help="skip the BEM check (analytic only)")
+
     sub.add_parser("info", help="versions, devices, precision")
     sub.add_parser("scenes", help="list the scenes")
 
@@ -52,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
     if args.command == "plot":
         return _plot(args)
+    if args.command == "calibrate-eps":
+        return _calibrate(args)
     if args.command == "info":
         return _info()
     if args.command == "scenes":
@@ -103,6 +116,27 @@ def _plot(args) -> int:
     if args.vtk:
         for p in io.write_vtk(out / "vtk" / "frame", run):
             print(p)
+    return 0
+
+
+def _calibrate(args) -> int:
+    import json
+
+    _enable_x64(True)
+    from .breakage.dsm import calibration_report
+
+    if args.force <= 0 or args.radius <= 0 or args.thickness <= 0:
+        print("error: force, radius and thickness must be positive", file=sys.stderr)
+        return 2
+    report = calibration_report(
+        args.force,
+        args.radius,
+        poisson_ratio=args.poisson_ratio,
+        plane=args.plane,
+        thickness=args.thickness,
+        bem_check=not args.no_bem,
+    )
+    print(json.dumps(report, indent=2, default=float))
     return 0
 
 

@@ -192,6 +192,11 @@ def frame_of(state: SimState, params: Params | None = None) -> dict[str, np.ndar
         "active": np.asarray(p.active),
         "wall_point": np.asarray(state.walls.point),
         "wall_force": np.asarray(state.walls.force),
+        # shapes change when particles break, so every frame keeps its own
+        "verts": np.asarray(p.verts),
+        "n_verts": np.asarray(p.n_verts),
+        "radius": np.asarray(p.radius),
+        "uid": np.asarray(p.uid),
     }
 
 

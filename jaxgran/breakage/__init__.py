@@ -11,4 +11,11 @@ from .criteria import fracture_planes as fracture_planes
 from .criteria import mohr_coulomb_criterion as mohr_coulomb_criterion
 from .criteria import principal_stresses as principal_stresses
 from .criteria import split_cell_criterion as split_cell_criterion
+from .dsm import DsmBreakage as DsmBreakage
+from .dsm import calibrate_eps as calibrate_eps
+from .dsm import calibration_report as calibration_report
+from .replace import dilated_outline as dilated_outline
+from .replace import max_overlap as max_overlap
+from .replace import replace_particle as replace_particle
+from .replace import replace_particles as replace_particles
 from .ssm import split_convex as split_convex

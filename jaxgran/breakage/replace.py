@@ -1,0 +1,575 @@
+"""Replace a broken particle by its fragments (paper 000 §II.D-E, steps vi-viii).
+
+Host-side numpy between segments: fragment and vertex counts are data dependent. The
+functions here write fragments into the padded :class:`~jaxgran.state.Particles` arrays and
+return the new state; the caller then runs :func:`jaxgran.simulate.prepare` so that the pair
+list and the forces match the new particles.
+
+Geometry of a fragment (the erosion rule).
+    The parent is the spheropolygon ``S = C + D(r)`` (core ``C``, disc of radius ``r``). The
+    fracture planes cut its *dilated outline* into pieces ``S_f = S ∩ H_f`` (``H_f`` the
+    intersection of half-planes on the fragment's side of every plane). Each piece is eroded
+    by ``r + delta`` and swept again by ``r``: the fragment is
+    ``C_f + D(r)`` with ``C_f = S_f ⊖ D(r + delta)``, where ``delta`` is the parent's largest
+    current overlap with any neighbour or wall (plus a tiny ``clearance``). Since a convex
+    set closed under erosion-dilation gives back itself, ``C_f = (C ⊖ D(delta)) ∩ (H_f ⊖
+    D(r + delta))``: the parent's core shrunk by ``delta`` and cut by the planes shifted
+    ``r + delta`` towards the fragment. Hence
+
+    * the fragment lies inside ``S ⊖ D(delta)``: a neighbour that penetrated the parent by
+      at most ``delta`` no longer touches it, so no fragment starts with an overlap (paper
+      000 Fig. 6: the contact force between A and B vanishes);
+    * siblings are ``2 delta`` apart across each plane (they touch when ``delta = 0``);
+    * with ``delta = 0`` only the new corners made by the planes are rounded: a straight cut
+      loses ``r^2 (tan(a/2) - a/2)`` per new corner of exterior angle ``a``.
+
+    To make the erosion of a *polygonal* outline exact, :func:`dilated_outline` returns the
+    polygon *circumscribed* to ``S`` (tangent to it on every flat edge and at ``n_arc`` points
+    per turn on the corner arcs): eroding it by ``r`` gives back the core ``C`` exactly, so
+    fragments have at most ``n + k`` vertices (``n`` parent vertices, ``k`` planes).
+
+Mass bookkeeping (per event, areal density ``rho`` of the parent, ``rho = m / A``):
+    ``parent_mass = sum(fragment_masses) + fines_mass + eroded_mass``; ``fines_mass`` is the
+    mass of the pieces dropped because their fragment vanished under erosion or fell below
+    ``min_area`` (their area measured on the circumscribed outline, which overestimates the
+    true piece by less than ``3e-3 r^2``); ``eroded_mass`` is the strip removed by the
+    erosion; ``mass_lost = parent_mass - sum(fragment_masses)`` (fines included).
+
+Kinematics: a fragment takes the parent's rigid-body velocity field at its centroid,
+``v_f = v + omega x (c_f - x)``, and ``omega_f = omega``. Linear and angular momentum are
+then conserved exactly up to the mass removed (no rescaling is done):
+``|sum m_f v_f - m v| <= mass_lost (|v| + |omega| R)``, ``R`` the parent's bounding radius.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import numpy.typing as npt
+from jax import Array
+
+from .. import geometry as geo
+from ..contact import closest_features, world_vertices
+from ..state import Contacts, Particles, SimState, empty_contacts, replace
+from .criteria import breakage_type
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Replacement",
+    "dilated_outline",
+    "fragment_cores",
+    "max_overlap",
+    "replace_particle",
+    "replace_particles",
+]
+
+# Clearance added to the erosion, relative to the parent's bounding radius: keeps the first
+# contact after creation at a (tiny) positive gap despite round-off.
+_CLEARANCE_REL = 1e-9
+# Vertices closer than this (relative to the fragment size) to a neighbour, or within this of
+# the chord of their neighbours, are dropped (removing a vertex of a convex polygon only
+# shrinks it, so this never creates an overlap).
+_CLEAN_REL = 1e-9
+# Default capacity growth factor when the free slots run out.
+_GROWTH = 2.0
+
+# Values of a fresh inactive slot, per Particles field (others are zero).
+_PAD = {"mass": 1.0, "inertia": 1.0, "uid": -1, "parent_uid": -1, "active": False}
+
+
+class Replacement(NamedTuple):
+    """One particle to replace: slot ``index``, its outline ``pieces`` (world frame, m) as
+    cut by the fracture ``planes`` (``[k, 2, 2]`` m, for the event log; optional)."""
+
+    index: int
+    pieces: list
+    planes: np.ndarray | None = None
+
+
+# ---------------------------------------------------------------------------- geometry
+
+
+def dilated_outline(core: npt.ArrayLike, radius: float, n_arc: int = 64) -> np.ndarray:
+    """Polygon circumscribed to the spheropolygon ``core + disc(radius)``, CCW ``[m, 2]`` (m).
+
+    Every flat edge of the spheropolygon is an edge of the polygon; each corner arc of
+    exterior angle ``a`` is replaced by ``s = ceil(n_arc a / 2 pi)`` tangent segments (tangent
+    at the middle of ``s`` equal sub-arcs), so the polygon contains the shape and eroding it
+    by ``radius`` gives back ``core`` exactly. Its area exceeds the shape's by about
+    ``pi^3 r^2 / (3 n_arc^2)`` (``3e-3 r^2`` for ``n_arc = 64``).
+
+    Args:
+        core: convex core ``[n, 2]`` (m), n >= 3 (either orientation), or 1-2 vertices.
+        radius: sweeping radius r > 0 (m); 0 returns the validated core.
+        n_arc: tangent segments per full turn (>= 4).
+    """
+    n_arc = int(n_arc)
+    if n_arc < 4:
+        raise ValueError(f"n_arc must be >= 4 tangent segments per turn, got {n_arc}")
+    radius = float(radius)
+    if not (math.isfinite(radius) and radius >= 0.0):
+        raise ValueError(f"radius must be finite and >= 0 m, got {radius}")
+    c = np.asarray(core, dtype=np.float64).reshape(-1, 2)
+    if len(c) >= 3:
+        c = geo.validate_polygon(c, name="core")
+    if radius == 0.0:
+        if len(c) < 3:
+            raise ValueError("a core of 1-2 vertices needs radius > 0 to have an outline")
+        return c
+    if len(c) == 1:
+        a = 2.0 * math.pi * (np.arange(n_arc) + 0.5) / n_arc
+        rho = radius / math.cos(math.pi / n_arc)
+        return c[0] + rho * np.stack([np.cos(a), np.sin(a)], axis=1)
+    e = np.roll(c, -1, axis=0) - c
+    normal = np.stack([e[:, 1], -e[:, 0]], axis=1) / np.linalg.norm(e, axis=1)[:, None]
+    n_prev = np.roll(normal, 1, axis=0)
+    if len(c) == 2:
+        theta = np.full(2, math.pi)
+    else:
+        cross = n_prev[:, 0] * normal[:, 1] - n_prev[:, 1] * normal[:, 0]
+        theta = np.clip(np.arctan2(cross, np.einsum("ij,ij->i", n_prev, normal)), 0.0, math.pi)
+    phi0 = np.arctan2(n_prev[:, 1], n_prev[:, 0])
+    out = []
+    for k in range(len(c)):
+        s = math.ceil(n_arc * theta[k] / (2.0 * math.pi) - 1e-9)
+        if s <= 0:  # collinear corner: the two edge lines meet at the offset point
+            out.append(c[k] + radius * n_prev[k])
+            continue
+        # tangent lines at phi0, phi0 + (j + 1/2) a / s (j < s), phi0 + a; consecutive lines
+        # at angles p < q meet at c + r / cos((q - p) / 2) * u((p + q) / 2)
+        lines = np.concatenate([[0.0], (np.arange(s) + 0.5) / s, [1.0]]) * theta[k] + phi0[k]
+        mid = 0.5 * (lines[1:] + lines[:-1])
+        half = 0.5 * (lines[1:] - lines[:-1])
+        rho = radius / np.cos(half)
+        out.append(c[k] + rho[:, None] * np.stack([np.cos(mid), np.sin(mid)], axis=1))
+    return np.concatenate(out, axis=0)
+
+
+def _clean_convex(p: np.ndarray) -> np.ndarray:
+    """Drop near-duplicate and near-collinear vertices of a convex CCW polygon (only
+    shrinks it)."""
+    size = geo.circumradius(p) if len(p) else 0.0
+    tol = _CLEAN_REL * max(size, np.finfo(float).tiny)
+    changed = True
+    while changed and len(p) > 3:
+        changed = False
+        prev, nxt = np.roll(p, 1, axis=0), np.roll(p, -1, axis=0)
+        chord = nxt - prev
+        rel = p - prev
+        clen = np.linalg.norm(chord, axis=1)
+        height = (rel[:, 0] * chord[:, 1] - rel[:, 1] * chord[:, 0]) / np.maximum(clen, 1e-300)
+        short = np.linalg.norm(nxt - p, axis=1) <= tol
+        bad = (np.abs(height) <= tol) | short
+        if bad.any():
+            p = np.delete(p, int(np.argmax(bad)), axis=0)
+            changed = True
+    return p
+
+
+def fragment_cores(
+    pieces: Sequence[npt.ArrayLike], radius: float, erosion: float
+) -> list[np.ndarray | None]:
+    """Erode outline pieces by ``radius + erosion`` into fragment cores (world frame, m).
+
+    Args:
+        pieces: convex pieces of the parent's dilated outline ``[m_i, 2]`` (m), best cut from
+            :func:`dilated_outline` (see the module docstring).
+        radius: sphero-radius r of the fragments (m).
+        erosion: extra erosion ``delta`` >= 0 (m): the parent's largest overlap.
+
+    Returns:
+        One core ``[n_i, 2]`` per piece, or ``None`` where the piece vanishes.
+    """
+    out: list[np.ndarray | None] = []
+    d = float(radius) + float(erosion)
+    for piece in pieces:
+        try:
+            core = geo.offset_polygon(piece, d)
+        except ValueError:  # erased by the erosion: fines
+            out.append(None)
+            continue
+        core = _clean_convex(core)
+        out.append(core if len(core) >= 3 else None)
+    return out
+
+
+@eqx.filter_jit
+def max_overlap(state: SimState) -> Array:
+    """Largest overlap (m) of each particle with any neighbour in the pair list or any wall
+    ``[P]``; 0 for particles without contact. Vertex-to-core distances in both directions,
+    as the contact law measures them (``r_i + r_j - gap``)."""
+    p = state.particles
+    n_p = p.pos.shape[0]
+    pairs = state.contacts.pairs
+    ok = pairs[:, 0] < n_p
+    i = jnp.where(ok, pairs[:, 0], 0)
+    j = jnp.where(ok, pairs[:, 1], 0)
+    wv = world_vertices(p)
+    both = ok & p.active[i] & p.active[j]
+    r_sum = p.radius[i] + p.radius[j]
+    g0, *_, v0 = closest_features(wv[i], p.n_verts[i], wv[j], p.n_verts[j])
+    g1, *_, v1 = closest_features(wv[j], p.n_verts[j], wv[i], p.n_verts[i])
+    ov0 = jnp.max(jnp.where(v0, r_sum[:, None] - g0, 0.0), axis=-1)
+    ov1 = jnp.max(jnp.where(v1, r_sum[:, None] - g1, 0.0), axis=-1)
+    ov = jnp.where(both, jnp.maximum(jnp.maximum(ov0, ov1), 0.0), 0.0)
+    out = jnp.zeros(n_p, wv.dtype)
+    out = out.at[i].max(ov).at[j].max(ov)
+    w = state.walls
+    rel = wv[:, None, :, :] - w.point[None, :, None, :]
+    gap = jnp.sum(rel * w.normal[None, :, None, :], axis=-1)
+    tan = jnp.stack([-w.normal[:, 1], w.normal[:, 0]], axis=-1)
+    s = jnp.sum(rel * tan[None, :, None, :], axis=-1)
+    inside = (s >= w.extent[None, :, None, 0]) & (s <= w.extent[None, :, None, 1])
+    real = jnp.arange(wv.shape[1])[None, None, :] < p.n_verts[:, None, None]
+    use = inside & real & w.active[None, :, None] & p.active[:, None, None]
+    ov_w = jnp.max(jnp.where(use, p.radius[:, None, None] - gap, 0.0), axis=(1, 2))
+    return jnp.where(p.active, jnp.maximum(out, jnp.maximum(ov_w, 0.0)), 0.0)
+
+
+# ---------------------------------------------------------------------------- replacement
+
+
+@dataclasses.dataclass
+class _Fragment:
+    core_body: np.ndarray  # [n, 2] m, centred on the mass centroid
+    centroid: np.ndarray  # [2] m, world
+    mass: float
+    inertia: float
+
+
+def _spheropolygon_area(core: np.ndarray, radius: float) -> float:
+    m, _, _ = geo.spheropolygon_mass_properties(core, radius, 1.0)
+    return m
+
+
+def _parent_core_world(arr: dict, k: int) -> np.ndarray:
+    n = int(arr["n_verts"][k])
+    v = arr["verts"][k, :n]
+    c, s = math.cos(arr["angle"][k]), math.sin(arr["angle"][k])
+    rot = np.array([[c, -s], [s, c]])
+    return v @ rot.T + arr["pos"][k]
+
+
+def _resize(name: str, a: np.ndarray, n_p: int, n_v: int) -> np.ndarray:
+    """Pad a per-particle array to ``n_p`` slots (and verts to ``n_v`` vertices)."""
+    if name == "verts" and a.shape[1] < n_v:
+        a = np.concatenate([a, np.repeat(a[:, -1:, :], n_v - a.shape[1], axis=1)], axis=1)
+    if a.shape[0] < n_p:
+        fill = np.full((n_p - a.shape[0],) + a.shape[1:], _PAD.get(name, 0), dtype=a.dtype)
+        if name == "pos":  # park new slots on an existing position (inside the domain)
+            fill[:] = a[0]
+        a = np.concatenate([a, fill], axis=0)
+    return a
+
+
+def _pad_vertex_axis(x: Array, axis: int, n_v: int) -> np.ndarray:
+    x = np.asarray(x)
+    if x.shape[axis] >= n_v:
+        return x
+    shape = list(x.shape)
+    shape[axis] = n_v - x.shape[axis]
+    return np.concatenate([x, np.zeros(shape, x.dtype)], axis=axis)
+
+
+def replace_particles(
+    state: SimState,
+    replacements: Sequence[Replacement],
+    *,
+    radius: float | None = None,
+    areal_density: float | None = None,
+    min_area: float = 0.0,
+    overlap: npt.ArrayLike | None = None,
+    clearance: float | None = None,
+    mean_initial_mass: float | None = None,
+    growth: float = _GROWTH,
+) -> tuple[SimState, list[dict]]:
+    """Replace several particles by their fragments at once (see :func:`replace_particle`).
+
+    Args:
+        state: current state.
+        replacements: one :class:`Replacement` per broken particle (distinct slots).
+        radius: sphero-radius of the fragments (m); default the parent's.
+        areal_density: kg/m^2 of the fragments; default the parent's, ``mass / area``.
+        min_area: fragments with a smaller area (m^2, after erosion) become fines.
+        overlap: ``[P]`` erosion beyond ``r`` (m) per slot; default :func:`max_overlap`.
+        clearance: added to the erosion (m); default ``1e-9`` x the parent's bound radius.
+        mean_initial_mass: mean particle mass at t = 0 (kg), for the breakage type (paper 000
+            Table III); without it the type is not classified.
+        growth: factor by which the particle capacity grows when free slots run out.
+
+    Returns:
+        ``(state, events)``: the new state (call :func:`jaxgran.simulate.prepare` before
+        stepping) and one event dict per replacement.
+    """
+    if not replacements:
+        return state, []
+    p = state.particles
+    n_p, n_v = p.verts.shape[:2]
+    idx = [int(r.index) for r in replacements]
+    if len(set(idx)) != len(idx):
+        raise ValueError(f"each slot may be replaced once per call; got slots {idx}")
+    arr = {f.name: np.array(getattr(p, f.name)) for f in dataclasses.fields(p)}
+    for k in idx:
+        if not 0 <= k < n_p or not arr["active"][k]:
+            raise ValueError(f"slot {k} is not an active particle (capacity {n_p})")
+    if overlap is None:
+        overlap = np.asarray(max_overlap(state))
+    overlap = np.broadcast_to(np.asarray(overlap, dtype=float), (n_p,))
+    time = float(state.time)
+
+    # 1. fragments of every parent
+    plans = []
+    for rep in replacements:
+        k = int(rep.index)
+        r = float(arr["radius"][k]) if radius is None else float(radius)
+        core_w = _parent_core_world(arr, k)
+        m_parent = float(arr["mass"][k])
+        a_parent = _spheropolygon_area(core_w, float(arr["radius"][k]))
+        rho = m_parent / a_parent if areal_density is None else float(areal_density)
+        clear = _CLEARANCE_REL * float(arr["bound_radius"][k]) if clearance is None else clearance
+        delta = max(float(overlap[k]), 0.0) + float(clear)
+        pieces = [np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in rep.pieces]
+        cores = fragment_cores(pieces, r, delta)
+        frags: list[_Fragment] = []
+        fines_area = 0.0
+        for piece, core in zip(pieces, cores, strict=True):
+            area = None if core is None else _spheropolygon_area(core, r)
+            if core is None or area < min_area:
+                fines_area += abs(geo.polygon_area(piece))
+                continue
+            m, c, inertia = geo.spheropolygon_mass_properties(core, r, rho)
+            frags.append(_Fragment(core - c, c, m, inertia))
+        plans.append((k, r, rho, delta, frags, fines_area, m_parent, rep))
+
+    # 2. capacity: free slots and vertex slots
+    needed = sum(max(len(pl[4]) - 1, 0) for pl in plans)
+    free = np.flatnonzero(~arr["active"]).tolist()
+    v_need = max([len(f.core_body) for pl in plans for f in pl[4]] + [n_v])
+    new_p = n_p
+    if needed > len(free):
+        new_p = max(n_p + needed - len(free), math.ceil(growth * n_p))
+    new_v = n_v if v_need <= n_v else max(v_need, math.ceil(growth * n_v))
+    grew = []
+    if new_p != n_p:
+        grew.append(f"particle capacity {n_p} -> {new_p}")
+    if new_v != n_v:
+        grew.append(f"vertex capacity {n_v} -> {new_v}")
+    if grew:
+        arr = {name: _resize(name, a, new_p, new_v) for name, a in arr.items()}
+        free = free + list(range(n_p, new_p))
+        msg = "breakage grew " + " and ".join(grew) + " (recompiles once)"
+        log.info(msg)
+
+    # 3. write fragments
+    next_uid = int(arr["uid"].max()) + 1
+    touched: list[int] = []
+    events = []
+    free_iter = iter(free)
+    for k, r, rho, delta, frags, fines_area, m_parent, rep in plans:
+        pos_k = arr["pos"][k].copy()
+        vel_k = arr["vel"][k].copy()
+        om_k = float(arr["omega"][k])
+        parent_uid = int(arr["uid"][k])
+        slots = [k] + [next(free_iter) for _ in frags[1:]]
+        uids = []
+        for slot, f in zip(slots, frags, strict=False):
+            nb = len(f.core_body)
+            arr["verts"][slot, :nb] = f.core_body
+            arr["verts"][slot, nb:] = f.core_body[-1]
+            arr["n_verts"][slot] = nb
+            arr["radius"][slot] = r
+            arr["bound_radius"][slot] = np.max(np.linalg.norm(f.core_body, axis=1)) + r
+            arr["mass"][slot] = f.mass
+            arr["inertia"][slot] = f.inertia
+            arr["pos"][slot] = f.centroid
+            arr["angle"][slot] = 0.0
+            d = f.centroid - pos_k
+            arr["vel"][slot] = vel_k + om_k * np.array([-d[1], d[0]])
+            arr["omega"][slot] = om_k
+            arr["force"][slot] = 0.0
+            arr["torque"][slot] = 0.0
+            arr["active"][slot] = True
+            arr["fixed"][slot] = arr["fixed"][k]
+            arr["material"][slot] = arr["material"][k]
+            arr["parent_uid"][slot] = parent_uid
+            arr["uid"][slot] = next_uid
+            uids.append(next_uid)
+            next_uid += 1
+            touched.append(slot)
+        if not frags:  # pulverised: the slot becomes free
+            arr["active"][k] = False
+            arr["mass"][k] = 1.0
+            arr["inertia"][k] = 1.0
+            arr["vel"][k] = 0.0
+            arr["omega"][k] = 0.0
+            arr["force"][k] = 0.0
+            arr["torque"][k] = 0.0
+            touched.append(k)
+        masses = np.array([f.mass for f in frags])
+        fines_mass = rho * fines_area
+        lost = m_parent - float(masses.sum())
+        planes = np.zeros((0, 2, 2)) if rep.planes is None else np.asarray(rep.planes, float)
+        event = {
+            "kind": "breakage",
+            "time": time,
+            "parent_uid": parent_uid,
+            "parent_slot": k,
+            "fragment_uids": np.array(uids, dtype=np.int64),
+            "fragment_slots": np.array(slots[: len(frags)], dtype=np.int64),
+            "fragment_masses": masses,
+            "parent_mass": m_parent,
+            "mass_lost": lost,
+            "fines_mass": fines_mass,
+            "eroded_mass": lost - fines_mass,
+            "n_fines": len(rep.pieces) - len(frags),
+            "erosion": delta,
+            "planes": planes.reshape(-1, 2, 2),
+            "position": pos_k,
+        }
+        if mean_initial_mass is not None:
+            event["breakage_type"] = (
+                breakage_type(masses, mean_initial_mass) if len(masses) else "pulverised"
+            )
+        if grew:
+            event["capacity_growth"] = msg
+            grew = []  # report it once
+        events.append(event)
+
+    # 4. new state: particles, and contacts with the history of touched slots cleared
+    dtypes = {f.name: getattr(p, f.name).dtype for f in dataclasses.fields(p)}
+    particles = Particles(**{n: jnp.asarray(a, dtype=dtypes[n]) for n, a in arr.items()})
+    contacts = _contacts_after(state.contacts, touched, new_p, new_v, state.walls.count)
+    return (
+        SimState(
+            particles=particles,
+            walls=state.walls,
+            contacts=contacts,
+            time=state.time,
+            step=state.step,
+            bonds=_bonds_after(state.bonds, touched, n_p, new_p),
+        ),
+        events,
+    )
+
+
+def _contacts_after(c: Contacts, touched: list[int], n_p: int, n_v: int, n_w: int) -> Contacts:
+    """Contacts for the new particle arrays: a fresh list if P changed (the sentinel ``P``
+    changes), else the old one with the tangential history of touched slots zeroed and the
+    vertex axis padded. Layouts (state.Contacts): ``xi [2, C, 2, V]``,
+    ``wall_xi [2, P, W, V]``."""
+    fd = c.xi.dtype
+    if c.ref_pos.shape[0] != n_p:
+        return empty_contacts(n_p, n_v, n_w, c.pairs.shape[0], dtype=fd)
+    pairs = np.asarray(c.pairs)
+    hit = np.isin(pairs[:, 0], touched) | np.isin(pairs[:, 1], touched)
+    xi = _pad_vertex_axis(c.xi, -1, n_v).copy()
+    xi[:, hit] = 0.0
+    wall_xi = _pad_vertex_axis(c.wall_xi, -1, n_v).copy()
+    wall_xi[:, touched] = 0.0
+    return Contacts(
+        pairs=c.pairs,
+        n_pairs=c.n_pairs,
+        xi=jnp.asarray(xi, fd),
+        wall_xi=jnp.asarray(wall_xi, fd),
+        ref_pos=c.ref_pos,
+        ref_angle=c.ref_angle,
+        n_builds=c.n_builds,
+    )
+
+
+def _bonds_after(bonds, touched: list[int], old_p: int, new_p: int):
+    """Bonds (jaxgran.bonds.Bonds) after replacement: those of a replaced slot are broken
+    (the fragments are new bodies) and the padding sentinel follows the capacity."""
+    if bonds is None:
+        return None
+    changes = {}
+    i, j = np.asarray(bonds.i), np.asarray(bonds.j)
+    hit = np.isin(i, touched) | np.isin(j, touched)
+    if hit.any():
+        changes["intact"] = jnp.asarray(np.asarray(bonds.intact) & ~hit)
+        if hasattr(bonds, "health"):
+            h = np.asarray(bonds.health)
+            changes["health"] = jnp.asarray(np.where(hit, 0.0, h), h.dtype)
+    wp = np.asarray(bonds.wall_p)
+    whit = np.isin(wp, touched)
+    if whit.any():
+        changes["wall_active"] = jnp.asarray(np.asarray(bonds.wall_active) & ~whit)
+    if new_p != old_p:
+        for name, a in (("i", i), ("j", j), ("wall_p", wp)):
+            changes[name] = jnp.asarray(np.where(a >= old_p, new_p, a), a.dtype)
+    return replace(bonds, **changes) if changes else bonds
+
+
+def replace_particle(
+    state: SimState,
+    k: int,
+    fragments_world: Sequence[npt.ArrayLike],
+    *,
+    radius: float | None = None,
+    areal_density: float | None = None,
+    min_area: float = 0.0,
+    overlap: float | None = None,
+    clearance: float | None = None,
+    mean_initial_mass: float | None = None,
+    planes: npt.ArrayLike | None = None,
+    growth: float = _GROWTH,
+) -> tuple[SimState, dict]:
+    """Replace particle ``k`` by fragments (paper 000 §II.D; erosion rule in the module doc).
+
+    The parent's slot is reused by the first fragment, the others go to free (inactive)
+    slots; when there are not enough, the particle capacity grows by ``growth`` (all
+    per-particle arrays, and the pair list restarts empty because its sentinel ``P``
+    changes); a fragment with more vertices than ``V`` grows the vertex capacity. Fragments
+    get new uids, ``parent_uid`` = the parent's uid, its material, the rigid-body velocity
+    field and exact mass and inertia. The tangential history of every pair and wall contact
+    of a touched slot is zeroed. Call :func:`jaxgran.simulate.prepare` afterwards.
+
+    Args:
+        state: current state.
+        k: slot of the broken particle.
+        fragments_world: pieces of the parent's dilated outline (world frame, m), e.g.
+            ``split_convex(dilated_outline(core_world, r), planes)``. Each piece is eroded by
+            ``r + overlap + clearance``; pieces that vanish or end up below ``min_area``
+            become fines.
+        radius: fragment sphero-radius (m); default the parent's.
+        areal_density: kg/m^2; default the parent's (mass / area).
+        min_area: smallest fragment area kept (m^2).
+        overlap: erosion beyond r (m); default the parent's largest current overlap with its
+            neighbours and walls (:func:`max_overlap`).
+        clearance: extra erosion (m); default ``1e-9`` x the parent's bound radius.
+        mean_initial_mass: mean initial particle mass (kg) for the breakage type.
+        planes: ``[k, 2, 2]`` fracture planes (m), stored in the event.
+        growth: capacity growth factor.
+
+    Returns:
+        ``(state, event)``. The event holds ``time`` (s), ``parent_uid``,
+        ``fragment_uids``, ``fragment_slots``, ``fragment_masses`` (kg), ``parent_mass``,
+        ``mass_lost`` (= parent - fragments, kg), ``fines_mass``, ``eroded_mass``,
+        ``n_fines``, ``erosion`` (m), ``planes`` and, with ``mean_initial_mass``,
+        ``breakage_type``; ``capacity_growth`` when a capacity grew.
+    """
+    n_p = state.particles.pos.shape[0]
+    ov = None
+    if overlap is not None:
+        ov = np.zeros(n_p)
+        ov[int(k)] = float(overlap)
+    state, events = replace_particles(
+        state,
+        [Replacement(int(k), list(fragments_world), None if planes is None else planes)],
+        radius=radius,
+        areal_density=areal_density,
+        min_area=min_area,
+        overlap=ov,
+        clearance=clearance,
+        mean_initial_mass=mean_initial_mass,
+        growth=growth,
+    )
+    return state, events[0]

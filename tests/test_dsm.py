@@ -1,0 +1,144 @@
+"""Damage separation model end to end: calibration, screening, the Brazilian disc between
+platens (critical force, fracture plane, halves), and no recompiles across breakage."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import monitoring
+
+from jaxgran.breakage.dsm import (
+    DsmBreakage,
+    brazilian_factor,
+    calibrate_eps,
+    calibration_report,
+    critical_load,
+)
+from jaxgran.scenes import brazilian_dsm as bz
+from jaxgran.simulate import prepare, run_segment
+from jaxgran.state import replace
+
+CFG = dataclasses.replace(bz.Config(), **bz.QUICK)
+
+_compiles: list[str] = []
+
+
+def _listener(event, duration, **kwargs):
+    if event == "/jax/core/compile/backend_compile_duration":
+        _compiles.append(str(kwargs.get("fun_name", "?")))
+
+
+monitoring.register_event_duration_secs_listener(_listener)
+
+
+# ----------------------------------------------------------------------------- calibration
+
+
+def test_brazilian_factor_and_calibration_match_physics_c():
+    # PHYSICS §C table: k = psi_c / (F / (pi R t))
+    assert brazilian_factor(0.3, "stress") == pytest.approx(3.4351, abs=1e-4)
+    assert brazilian_factor(0.3, "strain") == pytest.approx(3.3823, abs=1e-4)
+    assert brazilian_factor(0.2, "stress") == pytest.approx(3.3466, abs=1e-4)
+    eps = calibrate_eps(150.79, 0.01, thickness=0.01)
+    assert eps == pytest.approx(1.649e6, rel=1e-3)
+    assert critical_load(eps, 0.01, 0.01) == pytest.approx(150.79, rel=1e-12)
+    rep = calibration_report(150.79, 0.01, thickness=0.01, bem_check=False)
+    # the paper's 2.80251 MPa implies a 5.88 mm thick disc (PHYSICS §C)
+    assert rep["thickness_for_paper_eps_m"] == pytest.approx(5.88e-3, abs=0.01e-3)
+    # with the paper's eps and t = 1 cm the disc would break at 256.3 N
+    assert critical_load(2.80251e6, 0.01, 0.01) == pytest.approx(256.3, abs=0.1)
+
+
+# ----------------------------------------------------------------------------- static disc
+
+
+def _pressed_disc(force, rotation=0.0):
+    """The scene's disc between fixed platens, each contact vertex pressed with ``force``
+    (N): one vertex per platen unless the rotation puts an edge on it."""
+    state, params, grid = bz.build(CFG, rotation)
+    delta = force / CFG.normal_stiffness
+    w = state.walls
+    point = w.point + jnp.array([[0.0, delta], [0.0, -delta]])
+    state = replace(state, walls=replace(w, point=point, vel=jnp.zeros_like(w.vel)))
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0
+    return state, params, grid
+
+
+def _dsm(params, grid):
+    eps = calibrate_eps(CFG.target_force, CFG.disc_radius, thickness=CFG.thickness)
+    return DsmBreakage(
+        params,
+        grid,
+        eps=eps,
+        thickness=CFG.thickness,
+        n_elements=CFG.n_elements,
+        n_points=CFG.n_points,
+        batch_size=1,
+        mean_initial_mass=1.0,
+    )
+
+
+@pytest.fixture(scope="module")
+def quick_run():
+    return bz.simulate_test(CFG)
+
+
+def test_screening_and_criterion_bracket_the_critical_load(quick_run):
+    f_c = CFG.target_force
+    state, params, grid = _pressed_disc(0.4 * f_c)
+    dsm = _dsm(params, grid)
+    tab = dsm._table(state)
+    assert int(tab["n_neighbours"][0]) == 2
+    assert float(tab["max_force"][0]) == pytest.approx(0.4 * f_c, rel=1e-9)
+    area = float(state.particles.mass[0]) / CFG.areal_density
+    f_eq = critical_load(dsm.eps, math.sqrt(area / math.pi), CFG.thickness)
+    assert float(tab["critical_load"][0]) == pytest.approx(f_eq, rel=1e-12)
+    assert not bool(tab["flag"][0])  # below screen_fraction x F_c: no BEM
+    assert dsm.check(state) == [] and dsm.n_checked == 0
+    uid = int(state.particles.uid[0])
+    for ratio, breaks in ((0.99, False), (1.01, True)):
+        state, *_ = _pressed_disc(ratio * f_c)
+        decisions = dsm.check(state)
+        assert bool(decisions) == breaks
+        # psi at the saddle is the Brazilian centre value k F / (pi R t), within 0.5 %
+        assert dsm.last_saddle[uid] == pytest.approx(ratio * dsm.eps, rel=5e-3)
+
+
+def test_disc_between_platens_splits_in_halves_at_the_predicted_load(quick_run):
+    result, dsm, meas = quick_run
+    s = bz.summarize(result, dsm, meas, CFG)
+    assert s["broke"] and s["n_events"] >= 1
+    assert s["critical_force_N"] == pytest.approx(s["predicted_critical_force_N"], rel=0.02)
+    assert s["force_previous_check_N"] < s["predicted_critical_force_N"] * 1.005
+    assert all(a < 5.0 for a in s["fracture_plane_angles_deg"])
+    assert s["n_fragments"] == 2 and s["fragment_mass_ratio"] > 0.99
+    assert 0 < s["mass_lost_fraction"] < 0.02
+    ev = dsm.events[0]
+    total = ev["fragment_masses"].sum() + ev["fines_mass"] + ev["eroded_mass"]
+    assert total == pytest.approx(ev["parent_mass"], rel=1e-12)
+    assert ev["breakage_type"] == "splitting"
+    # the connection point is the disc centre
+    np.testing.assert_allclose(ev["connection_points"], [[0.0, 0.0]], atol=1e-3 * CFG.disc_radius)
+
+
+def test_no_recompiles_across_breakage_events(quick_run):
+    """After one breakage has compiled everything, another breakage (a new DSM, a turned
+    disc) and the segment after it compile nothing."""
+    _, params, grid = _pressed_disc(0.5 * CFG.target_force)
+    state, *_ = _pressed_disc(1.05 * CFG.target_force, rotation=0.05)
+    dsm = _dsm(params, grid)
+    _compiles.clear()
+    state, stop = dsm(state, None)
+    assert len(dsm.events) == 1 and not stop
+    state, _, err = run_segment(state, params, grid, CFG.check_every // CFG.record_every, 10)
+    assert int(err) == 0
+    assert _compiles == []
+    jax.jit(lambda x: x + 1)(jnp.zeros(3))  # the listener does see compiles
+    assert _compiles
+    # the halves start without force
+    ids = dsm.events[0]["fragment_slots"]
+    assert np.all(np.linalg.norm(np.asarray(state.particles.force)[ids], axis=1) < 1e-6)

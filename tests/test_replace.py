@@ -1,0 +1,288 @@
+"""Fragment replacement: erosion geometry, mass bookkeeping, momentum, no overlap at
+creation, tangential history, capacity growth (paper 000 §II.D)."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxgran import geometry as geo
+from jaxgran.breakage.replace import (
+    dilated_outline,
+    max_overlap,
+    replace_particle,
+)
+from jaxgran.breakage.ssm import split_convex
+from jaxgran.contact import pair_forces
+from jaxgran.partition import make_grid
+from jaxgran.simulate import prepare, run_segment
+from jaxgran.state import make_params, make_state, make_walls, particles_from_polygons, replace
+
+RHO = 12.0
+R = 1e-3  # sphero-radius (m)
+A = 0.02  # square core side (m)
+
+
+def _square(center=(0.0, 0.0), side=A):
+    return geo.regular_polygon(4, side / math.sqrt(2), math.pi / 4, center)
+
+
+def _world_core(state, k):
+    p = state.particles
+    n = int(p.n_verts[k])
+    c, s = math.cos(float(p.angle[k])), math.sin(float(p.angle[k]))
+    return np.asarray(p.verts[k, :n]) @ np.array([[c, s], [-s, c]]) + np.asarray(p.pos[k])
+
+
+def _state(polys, capacity=None, vertex_capacity=None, velocities=None):
+    parts = particles_from_polygons(
+        polys, R, RHO, capacity=capacity, vertex_capacity=vertex_capacity, velocities=velocities
+    )
+    return make_state(parts, make_walls([]))
+
+
+def _cut(state, k, lines, r=R):
+    return split_convex(dilated_outline(_world_core(state, k), r), np.asarray(lines, float))
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+@pytest.mark.parametrize("n", [3, 5, 32])
+def test_dilated_outline_erodes_back_to_the_core(n):
+    core = geo.regular_polygon(n, 0.01, 0.3, (0.1, -0.2))
+    out = dilated_outline(core, R, n_arc=64)
+    back = geo.offset_polygon(out, R)
+    assert len(back) == n
+    dist = np.linalg.norm(back[:, None, :] - core[None, :, :], axis=-1).min(axis=1)
+    assert dist.max() < 1e-14
+    exact = geo.spheropolygon_mass_properties(core, R, 1.0)[0]
+    excess = geo.polygon_area(out) - exact
+    assert 0 < excess <= 1.1 * math.pi**3 * R**2 / (3 * 64**2)
+
+
+# ----------------------------------------------------------------------------- bookkeeping
+
+
+def test_straight_cut_rounds_only_the_new_corners():
+    """A square cut through its centre, no overlap: each fragment is the half rectangle
+    eroded by r and swept again, so the loss is the four new corners, r^2 (1 - pi/4) each."""
+    state = _state([_square()], capacity=2)
+    pieces = _cut(state, 0, [[[0, -1], [0, 1]]])
+    state, ev = replace_particle(state, 0, pieces, overlap=0.0, clearance=0.0)
+    m0 = ev["parent_mass"]
+    assert ev["fragment_masses"].size == 2
+    assert ev["mass_lost"] == pytest.approx(RHO * 4 * R**2 * (1 - math.pi / 4), rel=1e-6)
+    assert ev["fines_mass"] == 0.0
+    total = ev["fragment_masses"].sum() + ev["fines_mass"] + ev["eroded_mass"]
+    assert total == pytest.approx(m0, rel=1e-14)
+    p = state.particles
+    assert np.asarray(p.active).tolist() == [True, True]
+    assert np.asarray(p.parent_uid).tolist() == [0, 0]
+    assert len(set(np.asarray(p.uid).tolist())) == 2 and int(p.uid.min()) > 1
+    assert "breakage_type" not in ev  # no mean initial mass given
+
+
+def test_erosion_by_the_overlap_is_exact_and_areas_add_up():
+    """Fragment = (half piece eroded by r + delta) swept by r: for the square cut in half
+    the core is a (A/2 - r - 2 delta) x (A - 2 delta) rectangle."""
+    delta = 2e-4
+    state = _state([_square()], capacity=2)
+    state, ev = replace_particle(
+        state, 0, _cut(state, 0, [[[0, -1], [0, 1]]]), overlap=delta, clearance=0.0
+    )
+    w, h = A / 2 - R - 2 * delta, A - 2 * delta
+    expected = RHO * (w * h + 2 * R * (w + h) + math.pi * R**2)
+    np.testing.assert_allclose(ev["fragment_masses"], expected, rtol=1e-12)
+    assert ev["erosion"] == delta
+    assert ev["eroded_mass"] == pytest.approx(ev["parent_mass"] - 2 * expected, rel=1e-12)
+
+
+def test_fines_are_counted_and_mass_adds_up():
+    """A hexagon cut by three lines, one of them chipping a corner below min_area."""
+    core = geo.regular_polygon(6, 0.01)
+    state = _state([core], capacity=4)
+    lines = [[[0, -1], [0, 1]], [[-1, 0.002], [1, 0.002]], [[0.0085, -1], [0.0095, 1]]]
+    pieces = _cut(state, 0, lines)
+    areas = np.array([geo.polygon_area(q) for q in pieces])
+    assert len(pieces) == 6 and np.sum(areas < 2e-5) == 2  # two chips, four large pieces
+    small = areas[areas < 2e-5].sum()
+    state, ev = replace_particle(state, 0, pieces, overlap=1e-5, min_area=2e-5)
+    assert ev["n_fines"] == 2
+    assert ev["fragment_masses"].size == len(pieces) - ev["n_fines"]
+    total = ev["fragment_masses"].sum() + ev["fines_mass"] + ev["eroded_mass"]
+    assert total == pytest.approx(ev["parent_mass"], rel=1e-14)
+    assert ev["eroded_mass"] > 0
+    # the fines are the dropped pieces (circumscribed outline: a hair above the true area)
+    assert ev["fines_mass"] == pytest.approx(RHO * small, rel=1e-9)
+    # fragments in the state carry exactly the event's masses
+    p = state.particles
+    slots = ev["fragment_slots"]
+    np.testing.assert_allclose(np.asarray(p.mass)[slots], ev["fragment_masses"], rtol=1e-15)
+    for s, m in zip(slots, ev["fragment_masses"], strict=True):
+        assert geo.spheropolygon_mass_properties(_world_core(state, s), R, RHO)[0] == (
+            pytest.approx(m, rel=1e-12)
+        )
+
+
+# ----------------------------------------------------------------------------- momentum
+
+
+def test_fragments_inherit_the_rigid_body_velocity_field():
+    v, w = np.array([0.3, -0.2]), 5.0
+    core = geo.regular_polygon(7, 0.01, 0.2, (0.05, 0.02))
+    state = _state([core], capacity=6, velocities=[v])
+    state = replace(state, particles=replace(state.particles, omega=jnp.array([w, 0, 0, 0, 0, 0])))
+    p0 = state.particles
+    x0, m0, i0 = np.asarray(p0.pos[0]), float(p0.mass[0]), float(p0.inertia[0])
+    c = x0
+    lines = [[c, c + [0.3, 1]], [c + [0, 0.003], c + [1, 0.004]]]
+    state, ev = replace_particle(state, 0, _cut(state, 0, lines), overlap=5e-5)
+    p = state.particles
+    s = ev["fragment_slots"]
+    assert s.size == 4
+    m = np.asarray(p.mass)[s]
+    x = np.asarray(p.pos)[s]
+    vf = np.asarray(p.vel)[s]
+    d = x - x0
+    np.testing.assert_allclose(vf, v + w * np.stack([-d[:, 1], d[:, 0]], 1), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(p.omega)[s], w)
+    lost = ev["mass_lost"]
+    assert 0 < lost / m0 < 0.05
+    bound = float(p0.bound_radius[0])
+    dp = (m[:, None] * vf).sum(0) - m0 * v
+    assert np.linalg.norm(dp) <= lost * (np.linalg.norm(v) + abs(w) * bound) * (1 + 1e-9)
+    # angular momentum about the origin, same bound with the lever arm
+    cross = lambda a, b: a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    l0 = m0 * cross(x0, v) + i0 * w
+    lf = (m * cross(x, vf)).sum() + (np.asarray(p.inertia)[s] * w).sum()
+    lever = np.linalg.norm(x0) + bound
+    assert abs(lf - l0) <= lost * (lever * (np.linalg.norm(v) + abs(w) * bound) + w * bound**2)
+
+
+# ----------------------------------------------------------------------------- overlap
+
+
+def _row_of_three(overlap):
+    """Three squares in a row, the middle one overlapping both neighbours by ``overlap``."""
+    step = A + 2 * R - overlap
+    polys = [_square((-step, 0)), _square(), _square((step, 0))]
+    parts = particles_from_polygons(polys, R, RHO, capacity=6, vertex_capacity=8)
+    params = make_params(normal_stiffness=1e6, tangential_stiffness=3e5, gravity=(0, 0), dt=1e-6)
+    # a fixed cell size: the same grid (so compiled code) for every overlap
+    grid = make_grid((-0.1, -0.1), (0.1, 0.1), A / math.sqrt(2) + R, 2e-3)
+    state, err = prepare(make_state(parts, make_walls([])), params, grid)
+    assert int(err) == 0
+    return state, params, grid
+
+
+def _max_force_on(state, params, slots):
+    _, _, _, info = pair_forces(state.particles, state.contacts, params)
+    pairs = np.asarray(state.contacts.pairs)
+    act = np.asarray(info["active"])
+    f = np.linalg.norm(np.asarray(info["force"]), axis=-1)
+    hit = np.isin(pairs[:, 0], slots) | np.isin(pairs[:, 1], slots)
+    return float(np.max(np.where(act & hit[:, None, None], f, 0.0), initial=0.0))
+
+
+def test_fragments_start_without_overlap_and_without_force():
+    overlap = 3e-5
+    state, params, grid = _row_of_three(overlap)
+    before = _max_force_on(state, params, [1])
+    assert before == pytest.approx(1e6 * overlap, rel=1e-6)
+    assert float(max_overlap(state)[1]) == pytest.approx(overlap, rel=1e-9)
+    # a diagonal cut and a horizontal one: fragments touch both neighbours' faces
+    lines = [[[-1, -1], [1, 1]], [[-1, 0.001], [1, 0.001]]]
+    state, ev = replace_particle(state, 1, _cut(state, 1, lines))
+    assert ev["erosion"] >= overlap
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0
+    frags = ev["fragment_slots"].tolist()
+    assert len(frags) == 4
+    assert np.all(np.asarray(max_overlap(state))[frags] == 0.0)
+    assert _max_force_on(state, params, frags) == 0.0
+    # a few hundred steps later nothing has pushed them together: no force spike
+    state, _, err = run_segment(state, params, grid, 4, 50)
+    assert int(err) == 0
+    assert _max_force_on(state, params, frags + [0, 2]) < 1e-9 * before
+
+
+def test_tangential_history_of_touched_slots_is_zeroed():
+    state, params, grid = _row_of_three(1e-5)
+    c = state.contacts
+    state = replace(
+        state, contacts=replace(c, xi=jnp.ones_like(c.xi), wall_xi=jnp.ones_like(c.wall_xi))
+    )
+    pairs = np.asarray(state.contacts.pairs)
+    valid = pairs[:, 0] < 6
+    assert valid.sum() >= 2
+    state, _ = replace_particle(state, 0, _cut(state, 0, [[[-0.03, -1], [-0.03, 1]]]))
+    xi = np.asarray(state.contacts.xi)
+    wxi = np.asarray(state.contacts.wall_xi)
+    touched = np.isin(pairs[:, 0], [0, 3]) | np.isin(pairs[:, 1], [0, 3])
+    assert np.all(xi[:, touched] == 0) and np.all(xi[:, valid & ~touched] == 1)
+    assert np.all(wxi[:, [0, 3]] == 0) and np.all(wxi[:, [1, 2]] == 1)
+
+
+# ----------------------------------------------------------------------------- capacity
+
+
+def test_full_capacity_grows_particles_and_restarts_the_pair_list():
+    state, params, grid = _row_of_three(1e-5)
+    cores = [_world_core(state, k) for k in range(3)]
+    # no free slot; after growth the shapes equal _row_of_three's (compiled once)
+    full = particles_from_polygons(cores, R, RHO, capacity=3, vertex_capacity=8)
+    state = make_state(full, make_walls([]), pair_capacity=24)
+    lines = [[[-1, -1], [1, 1]], [[-1, 0.001], [1, 0.001]]]
+    state, ev = replace_particle(state, 1, _cut(state, 1, lines), overlap=1e-5)
+    p = state.particles
+    assert "particle capacity 3 -> 6" in ev["capacity_growth"]
+    assert p.pos.shape == (6, 2) and p.verts.shape[0] == 6
+    assert int(np.asarray(p.active).sum()) == 2 + 4
+    assert sorted(ev["fragment_slots"].tolist()) == [1, 3, 4, 5]
+    c = state.contacts
+    assert np.all(np.asarray(c.pairs) == 6)  # fresh list with the new sentinel
+    assert c.wall_xi.shape[1] == 6 and c.ref_pos.shape == (6, 2)
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0 and int(state.contacts.n_pairs) > 0
+    state, _, err = run_segment(state, params, grid, 4, 50)
+    assert int(err) == 0
+
+
+def test_fragment_with_more_vertices_grows_the_vertex_capacity():
+    state = _state([_square()], capacity=2, vertex_capacity=4)
+    # a corner chip: the big piece is a pentagon (5 > V = 4)
+    state, ev = replace_particle(state, 0, _cut(state, 0, [[[0.004, 0.012], [0.012, 0.004]]]))
+    p = state.particles
+    assert "vertex capacity 4 -> 8" in ev["capacity_growth"]
+    assert p.verts.shape == (2, 8, 2)
+    assert state.contacts.xi.shape[-1] == 8 and state.contacts.wall_xi.shape[-1] == 8
+    assert sorted(np.asarray(p.n_verts).tolist()) == [3, 5]
+
+
+def test_bonds_of_a_replaced_particle_break_and_follow_the_capacity():
+    from jaxgran.bonds import make_bonds
+
+    cells = [_square((x, 0.0)) for x in (-A, 0.0, A)]
+    parts = particles_from_polygons(
+        [geo.offset_polygon(c, R) for c in cells], R, RHO, capacity=3, vertex_capacity=8
+    )
+    bonds = make_bonds(
+        cells,
+        parts,
+        thickness=0.01,
+        b_n=1e8,
+        b_t=1e8,
+        b_m=1e8,
+        eps_th=1e-3,
+        theta_th=1e-2,
+        capacity=4,
+    )
+    assert np.asarray(bonds.intact).tolist() == [True, True, False, False]
+    state = replace(make_state(parts, make_walls([])), bonds=bonds)
+    state, ev = replace_particle(state, 2, _cut(state, 2, [[[A, -1], [A, 1]]]), overlap=0.0)
+    assert "particle capacity 3 -> 6" in ev["capacity_growth"]
+    b = state.bonds
+    assert np.asarray(b.intact).tolist() == [True, False, False, False]  # (1, 2) broke
+    assert np.asarray(b.i).tolist()[2:] == [6, 6] and np.asarray(b.j).tolist()[2:] == [6, 6]
