@@ -60,7 +60,7 @@ def packing(n: int, dtype, seed: int = 0):
     params = make_params(dtype=dtype)
     params = replace(params, dt=jnp.asarray(stable_time_step(parts, params), dtype))
     walls = make_walls(box_walls((0.0, 0.0), (side, side)), dtype=dtype)
-    state = make_state(parts, walls, pair_capacity=5 * n)
+    state = make_state(parts, walls, pair_capacity=-(-5 * n // 256) * 256)
     grid = make_grid(
         (-0.05, -0.05),
         (side + 0.05, side + 0.05),

@@ -22,7 +22,6 @@ advanced by ``v_t dt``.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -212,32 +211,26 @@ def _pair_geometry_soa(wx, wy, nv, frames, i, j):
     )
 
 
-def pair_forces(
-    p: Particles, contacts: Contacts, params: Params, damp_velocity=None
-) -> tuple[Array, Array, Array, dict]:
-    """Forces and torques from all particle pairs in the Verlet list.
-
-    ``damp_velocity``: optional ``(vel [P, 2], omega [P])`` used by the dashpots (see
-    :func:`contact_law`); ``p.vel``, ``p.omega`` drive the tangential spring.
-
-    Returns:
-        force ``[P, 2]`` (N), torque ``[P]`` (N m), new tangential history ``[2, C, 2, V]``,
-        and per-contact data (``point [C,2,V,2]``, ``force`` on the vertex owner
-        ``[C,2,V,2]``, ``active [C,2,V]``, ``normal_force``) for post-processing (force
-        chains, BEM loading); unused outputs cost nothing under jit.
-    """
-    n_p = p.pos.shape[0]
-    pairs = contacts.pairs
-    pair_ok = pairs[:, 0] < n_p
-    i = jnp.where(pair_ok, pairs[:, 0], 0)
-    j = jnp.where(pair_ok, pairs[:, 1], 0)
+def _soa_world(p: Particles):
     c, s = jnp.cos(p.angle)[:, None], jnp.sin(p.angle)[:, None]
     bx, by = p.verts[..., 0], p.verts[..., 1]
     wx = c * bx - s * by + p.pos[:, 0:1]
     wy = s * bx + c * by + p.pos[:, 1:2]
-    frames = _frames_soa(wx, wy, p.n_verts)
+    return wx, wy, _frames_soa(wx, wy, p.n_verts)
+
+
+def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, damp_velocity):
+    """Contact forces of a block of pairs ``[c, 2]`` with history ``[2, c, 2, V]``.
+
+    Returns the force and torque on the first and second body of every pair
+    (``[c, 2]``, ``[c, 2]``, ``[c]``, ``[c]``), the new history and per-contact data."""
+    n_p = p.pos.shape[0]
+    wx, wy, frames = world
+    pair_ok = pairs[:, 0] < n_p
+    i = jnp.where(pair_ok, pairs[:, 0], 0)
+    j = jnp.where(pair_ok, pairs[:, 1], 0)
     gap, (nx, ny), (qx, qy), keep = _pair_geometry_soa(wx, wy, p.n_verts, frames, i, j)
-    owner = jnp.stack([i, j], axis=1)  # [C, 2] body whose vertex is tested
+    owner = jnp.stack([i, j], axis=1)  # [c, 2] body whose vertex is tested
     other = jnp.stack([j, i], axis=1)
     r_oth = p.radius[other][..., None]
     overlap = p.radius[owner][..., None] + r_oth - gap
@@ -261,11 +254,11 @@ def pair_forces(
 
     v_rel = rel_vel(p.vel, p.omega)
     v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
-    (fx, fy), xi, fn = contact_law(
+    (fx, fy), xi_new, fn = contact_law(
         overlap,
         (nx, ny),
         v_rel,
-        (contacts.xi[0], contacts.xi[1]),
+        (xi[0], xi[1]),
         m_eff,
         act,
         params.normal_stiffness,
@@ -276,19 +269,42 @@ def pair_forces(
         params.dt,
         v_damp=v_damp,
     )
-    t_own = (rox * fy - roy * fx).sum(axis=2)  # [C, 2]
+    t_own = (rox * fy - roy * fx).sum(axis=2)  # [c, 2 dir]
     t_oth = -(rtx * fy - rty * fx).sum(axis=2)
-    f_own = jnp.stack([fx.sum(axis=2), fy.sum(axis=2)], axis=-1)  # [C, 2 dir, 2]
-    seg = lambda data, idx: jax.ops.segment_sum(data, idx, num_segments=n_p)
-    f = seg(f_own[:, 0] - f_own[:, 1], i) + seg(f_own[:, 1] - f_own[:, 0], j)
-    t = seg(t_own[:, 0] + t_oth[:, 1], i) + seg(t_own[:, 1] + t_oth[:, 0], j)
+    f_own = jnp.stack([fx.sum(axis=2), fy.sum(axis=2)], axis=-1)  # [c, 2 dir, 2]
+    f_i = f_own[:, 0] - f_own[:, 1]
+    t_i = t_own[:, 0] + t_oth[:, 1]
+    t_j = t_own[:, 1] + t_oth[:, 0]
     info = {
         "point": jnp.stack([xcx, xcy], axis=-1),
         "force": jnp.stack([fx, fy], axis=-1),
         "active": act,
         "normal_force": fn,
     }
-    return f, t, jnp.stack(xi), info
+    return (i, j, f_i, t_i, t_j), jnp.stack(xi_new), info
+
+
+def pair_forces(
+    p: Particles, contacts: Contacts, params: Params, damp_velocity=None
+) -> tuple[Array, Array, Array, dict]:
+    """Forces and torques from all particle pairs in the Verlet list.
+
+    ``damp_velocity``: optional ``(vel [P, 2], omega [P])`` used by the dashpots (see
+    :func:`contact_law`); ``p.vel``, ``p.omega`` drive the tangential spring.
+
+    Returns:
+        force ``[P, 2]`` (N), torque ``[P]`` (N m), new tangential history ``[2, C, 2, V]``,
+        and per-contact data (``point [C,2,V,2]``, ``force`` on the vertex owner
+        ``[C,2,V,2]``, ``active [C,2,V]``, ``normal_force``) for post-processing (force
+        chains, BEM loading); under jit, unused outputs cost nothing.
+    """
+    n_p = p.pos.shape[0]
+    (i, j, f_i, t_i, t_j), xi, info = _pair_kernel(
+        p, _soa_world(p), contacts.pairs, contacts.xi, params, damp_velocity
+    )
+    f = jnp.zeros((n_p, 2), f_i.dtype).at[i].add(f_i).at[j].add(-f_i)
+    t = jnp.zeros((n_p,), t_i.dtype).at[i].add(t_i).at[j].add(t_j)
+    return f, t, xi, info
 
 
 def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp_velocity=None):

@@ -486,7 +486,8 @@ def make_state(particles: Particles, walls: Walls, *, pair_capacity: int | None 
     """Assemble a :class:`SimState` at t = 0. The default pair capacity is 4 per particle;
     the host loop grows it when needed."""
     n_p, n_v = particles.verts.shape[:2]
-    cap = 4 * n_p if pair_capacity is None else int(pair_capacity)
+    # a multiple of the contact kernel's block (jaxgran.contact.PAIR_BLOCK) by default
+    cap = -(-4 * n_p // 256) * 256 if pair_capacity is None else int(pair_capacity)
     if cap < 1:
         raise ValueError("pair capacity must be >= 1")
     fd = particles.pos.dtype
