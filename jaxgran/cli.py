@@ -55,6 +55,10 @@ def main(argv: list[str] | None = None) -> int:
     cal.add_argument("--plane", choices=["stress", "strain"], default="stress")
     cal.add_argument("--no-bem", action="store_true", help="skip the BEM check (analytic only)")
 
+    cmp_p = sub.add_parser("compare", help="lay several runs side by side (table + figure)")
+    cmp_p.add_argument("runs", nargs="+", type=Path, help="run folders (with summary.json)")
+    cmp_p.add_argument("--out", type=Path, default=Path("compare"), help="output folder")
+
     sub.add_parser("info", help="versions, devices, precision")
     sub.add_parser("scenes", help="list the scenes")
 
@@ -63,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
     if args.command == "plot":
         return _plot(args)
+    if args.command == "compare":
+        return _compare(args)
     if args.command == "calibrate-eps":
         return _calibrate(args)
     if args.command == "info":
@@ -116,6 +122,24 @@ def _plot(args) -> int:
     if args.vtk:
         for p in io.write_vtk(out / "vtk" / "frame", run):
             print(p)
+    return 0
+
+
+def _compare(args) -> int:
+    import json
+
+    from .compare import compare
+
+    missing = [str(r) for r in args.runs if not (r / "summary.json").exists()]
+    if missing:
+        print(f"error: no summary.json in {', '.join(missing)}", file=sys.stderr)
+        return 2
+    markdown, rows, fig = compare(args.runs)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "compare.md").write_text(markdown)
+    (args.out / "compare.json").write_text(json.dumps(rows, indent=2, default=float))
+    fig.savefig(args.out / "compare.png", dpi=120)
+    print(markdown)
     return 0
 
 

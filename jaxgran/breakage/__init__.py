@@ -1,6 +1,9 @@
 """Particle breakage: criteria (DSM connection points, averaged-stress methods), the subset
 separation method, and replacement."""
 
+from .averaged import AveragedStressBreakage as AveragedStressBreakage
+from .averaged import calibrate_strengths as calibrate_strengths
+from .averaged import make_breakage as make_breakage
 from .criteria import ConnectionPoints as ConnectionPoints
 from .criteria import CriterionResult as CriterionResult
 from .criteria import averaged_stress as averaged_stress

@@ -1,0 +1,407 @@
+"""Oedometric compression of breakable pentagons (paper 000 §III, after Cantor et al. 2015).
+
+About ``n_particles`` pentagon-like grains (irregular pentagons of circumdiameter
+``min_diameter``-``max_diameter``, swept by ``sphero_radius``) are dropped into a container
+``box_width`` wide and settle under gravity; then a top bar (a wall in velocity mode) is put
+just above the pile and moves down at ``bar_speed`` (1 mm/s) for ``load_time``, while the
+breakage method of ``method`` (``dsm``, ``split-cell``, ``cross-cut``, ``mohr-coulomb``,
+:func:`jaxgran.breakage.averaged.make_breakage`) checks the grains between segments.
+
+Parameters: paper 000 Table I (K_n = 6e5 N/m, K_t = 2.2e4 N/m, mu = 0.74, areal density
+1.2 g/cm^2 = 12 kg/m^2, Verlet distance 2 mm, nu = 0.3), a viscous damping from a restitution
+coefficient (not in Table I), and the breakage thresholds calibrated on the Brazilian test
+of the paper (F = 150.79 N, r = 1 cm) at our thickness t = 1 cm. Table I's dt = 5e-4 s is
+far above the explicit stability limit ``sqrt(2 m_min / K_n)`` (about 3e-5 s for a 1 cm
+pentagon and less for its fragments); dt here is ``dt_safety`` times the limit of the
+smallest fragment that is kept (``min_fragment_fraction`` of the mean grain mass; smaller
+pieces become fines and count as lost mass).
+
+Outputs (summary.json, run.h5 with the event log, figures): snapshots at
+``snapshot_times`` after the loading starts (paper 000 Fig. 7), the relative mass, mean
+speed and mean angular speed against time (Fig. 8), number and types of breakage events
+(Table III), the kinetic-energy spike of each event and the mass lost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import geometry as geo
+from ..breakage import metrics
+from ..breakage.averaged import make_breakage, method_name
+from ..contact import damping_from_restitution
+from ..integrate import check_time_step
+from ..partition import make_grid
+from ..simulate import frame_of, simulate
+from ..state import (
+    WALL_VELOCITY,
+    box_walls,
+    make_params,
+    make_state,
+    make_walls,
+    particles_from_polygons,
+    replace,
+    wall,
+)
+from .base import write_outputs
+
+__all__ = ["Config", "QUICK", "build", "run", "simulate_test", "summarize"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    method: str = "dsm"  # dsm, split-cell, cross-cut, mohr-coulomb
+    n_particles: int = 24
+    box_width: float = 0.10  # m
+    box_height: float = 0.09  # m, container height (the bar starts at the pile top)
+    min_diameter: float = 0.01  # m, circumdiameter range of the pentagons
+    max_diameter: float = 0.03  # m
+    sphero_radius: float = 1.0e-3  # m
+    irregularity: float = 0.12  # random perturbation of the pentagon's angles and radii
+    normal_stiffness: float = 6.0e5  # N/m, Table I
+    tangential_stiffness: float = 2.2e4  # N/m, Table I
+    friction: float = 0.74  # Table I
+    areal_density: float = 12.0  # kg/m^2, Table I (1.2 g/cm^2)
+    poisson_ratio: float = 0.3  # Table I
+    thickness: float = 0.01  # m
+    restitution: float = 0.3  # sets G_n, G_t (not in Table I)
+    skin: float = 2.0e-3  # m, Table I Verlet distance
+    calibration_force: float = 150.79  # N, Brazilian breaking force (paper 000 §III)
+    calibration_radius: float = 0.01  # m
+    min_fragment_fraction: float = 0.05  # fragments lighter than this x mean mass: fines
+    dt_safety: float = 0.3  # x the stability limit of the smallest kept fragment
+    settle_time: float = 0.6  # s, at most, under gravity before loading
+    settle_ke_ratio: float = 1.0e-4  # settled when KE < this x its peak
+    bar_gap: float = 5.0e-4  # m, bar above the highest grain when loading starts
+    bar_speed: float = 1.0e-3  # m/s
+    load_time: float = 2.4  # s
+    snapshot_times: tuple = (0.0, 0.9, 1.1, 2.4)  # s after loading starts
+    record_every: int = 100
+    records_per_segment: int = 10
+    n_elements: int = 64  # DSM BEM elements
+    n_points: int = 200  # DSM BEM sample points
+    seed: int = 0
+
+
+QUICK = {
+    "n_particles": 4,
+    "box_width": 0.045,
+    "min_diameter": 0.016,
+    "max_diameter": 0.02,
+    "min_fragment_fraction": 0.1,
+    "dt_safety": 0.3,
+    "settle_time": 0.08,
+    "bar_speed": 0.1,
+    "load_time": 0.03,
+    "snapshot_times": (0.0, 0.01, 0.02, 0.03),
+    "records_per_segment": 5,
+}
+
+
+def pentagons(cfg: Config) -> list[np.ndarray]:
+    """Irregular pentagon cores (m) on a loose lattice above the container floor."""
+    rng = np.random.default_rng(cfg.seed)
+    r = cfg.sphero_radius
+    per_row = max(1, int(cfg.box_width // (cfg.max_diameter + 2e-3)))
+    pitch = cfg.box_width / per_row
+    out, y = [], 0.0
+    k = 0
+    while k < cfg.n_particles:
+        ds = rng.uniform(cfg.min_diameter, cfg.max_diameter, per_row)
+        row_h = float(ds.max()) + 2e-3
+        for c in range(per_row):
+            if k >= cfg.n_particles:
+                break
+            big = 0.5 * ds[c] - r
+            ang = 2 * np.pi * np.arange(5) / 5 + rng.uniform(-1, 1, 5) * cfg.irregularity
+            ang += rng.uniform(0, 2 * np.pi)
+            rad = big * (1 - cfg.irregularity * rng.uniform(0, 1, 5))
+            poly = np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1)
+            poly = poly * (big / geo.circumradius(poly - geo.polygon_centroid(poly)))
+            centre = np.array([(c + 0.5) * pitch, y + 0.5 * row_h + r + 1e-3])
+            out.append(geo.validate_polygon(poly - geo.polygon_centroid(poly) + centre))
+            k += 1
+        y += row_h
+    return out
+
+
+def build(cfg: Config):
+    """Initial state (grains in the air, bar parked above them), parameters and grid."""
+    cores = pentagons(cfg)
+    parts = particles_from_polygons(cores, cfg.sphero_radius, cfg.areal_density)
+    m = np.asarray(parts.mass)
+    m_mean = float(m.mean())
+    params = make_params(
+        normal_stiffness=cfg.normal_stiffness,
+        tangential_stiffness=cfg.tangential_stiffness,
+        friction=cfg.friction,
+        normal_damping=damping_from_restitution(cfg.restitution, cfg.normal_stiffness, m_mean / 2),
+        tangential_damping=damping_from_restitution(
+            cfg.restitution, cfg.tangential_stiffness, m_mean / 2
+        ),
+        skin=cfg.skin,
+        thickness=cfg.thickness,
+        poisson_ratio=cfg.poisson_ratio,
+    )
+    # the smallest kept fragment: a sliver has I / l^2 of about a quarter of its mass
+    m_rot = 0.25 * cfg.min_fragment_fraction * m_mean
+    dt = cfg.dt_safety * math.sqrt(2.0 * m_rot / cfg.normal_stiffness)
+    params = replace(params, dt=jnp.asarray(dt))
+    check_time_step(parts, params)
+    pos = np.asarray(parts.pos)
+    top = float(pos[:, 1].max() + np.asarray(parts.bound_radius).max()) + 0.01
+    height = max(top, cfg.box_height)
+    walls = box_walls((0.0, 0.0), (cfg.box_width, height), top=False)
+    walls.append(wall((0.0, height), (0.0, -1.0), mode=WALL_VELOCITY, length=cfg.box_width))
+    state = make_state(parts, make_walls(walls))
+    rmax = float(np.asarray(parts.bound_radius).max())
+    grid = make_grid((-0.02, -0.02), (cfg.box_width + 0.02, height + 0.03), rmax, cfg.skin)
+    return state, params, grid
+
+
+def _pile_top(state) -> float:
+    p = state.particles
+    act = np.asarray(p.active)
+    pos = np.asarray(p.pos)[act]
+    wv = np.asarray(p.verts)[act]
+    a = np.asarray(p.angle)[act]
+    c, s = np.cos(a)[:, None], np.sin(a)[:, None]
+    y = pos[:, 1:2] + s * wv[..., 0] + c * wv[..., 1]
+    n = np.asarray(p.n_verts)[act]
+    y = np.where(np.arange(wv.shape[1])[None] < n[:, None], y, -np.inf)
+    return float((y.max(axis=1) + np.asarray(p.radius)[act]).max())
+
+
+def simulate_test(cfg, *, progress: bool = False, build_fn=None):
+    """Settle, then load with breakage. Returns ``(settle_result, load_result, breakage,
+    info)``; ``info`` holds snapshots, the initial mass and timing. ``build_fn(cfg) ->
+    (state, params, grid)`` (default :func:`build`) must put the top bar last among the walls;
+    ``cfg`` needs the fields of :class:`Config` used here."""
+    state, params, grid = (build_fn or build)(cfg)
+    dt = float(params.dt)
+    peak = [0.0]
+
+    def settled(s, rec):
+        ke = rec["kinetic_energy"]
+        peak[0] = max(peak[0], float(ke.max()))
+        return s, bool(float(rec["time"][-1]) > 0.1 and ke[-1] <= cfg.settle_ke_ratio * peak[0])
+
+    settle = simulate(
+        state,
+        params,
+        grid,
+        n_steps=int(math.ceil(cfg.settle_time / dt)),
+        record_every=cfg.record_every,
+        records_per_segment=cfg.records_per_segment,
+        frame_every=10**9,
+        callback=settled,
+        progress=progress,
+        desc="oedometer settle",
+    )
+    s0 = settle.state
+    w = s0.walls
+    bar = int(w.point.shape[0]) - 1
+    y_bar = _pile_top(s0) + cfg.bar_gap
+    point = w.point.at[bar, 1].set(y_bar)
+    vel = w.vel.at[bar].set(jnp.array([0.0, -cfg.bar_speed]))
+    s0 = replace(s0, walls=replace(w, point=point, vel=vel))
+    p0 = s0.particles
+    act0 = np.asarray(p0.active)
+    m_mean = float(np.asarray(p0.mass)[act0].mean())
+    mass0 = float(np.asarray(p0.mass)[act0].sum())
+    brk = make_breakage(
+        cfg.method,
+        params,
+        settle.grid,
+        calibration_force=cfg.calibration_force,
+        calibration_radius=cfg.calibration_radius,
+        thickness=cfg.thickness,
+        poisson_ratio=cfg.poisson_ratio,
+        min_area=cfg.min_fragment_fraction * m_mean / cfg.areal_density,
+        mean_initial_mass=m_mean,
+        dsm_options={"n_elements": cfg.n_elements, "n_points": cfg.n_points},
+    )
+    t0 = float(s0.time)
+    targets = sorted(cfg.snapshot_times)
+    snaps: list[dict] = [{"t_load": 0.0, **frame_of(s0)}]
+    pending = [t for t in targets if t > 0]
+
+    def step_callback(s, rec):
+        s, stop = brk(s, rec)
+        t_load = float(s.time) - t0
+        while pending and t_load >= pending[0] - 0.5 * dt * cfg.record_every:
+            snaps.append({"t_load": t_load, "target": pending.pop(0), **frame_of(s)})
+        return s, stop
+
+    load = simulate(
+        s0,
+        params,
+        brk.grid,
+        n_steps=int(math.ceil(cfg.load_time / dt)),
+        record_every=cfg.record_every,
+        records_per_segment=cfg.records_per_segment,
+        frame_every=10,
+        callback=step_callback,
+        progress=progress,
+        desc=f"oedometer {cfg.method}",
+    )
+    snaps[0]["target"] = 0.0
+    info = {
+        "snapshots": snaps,
+        "initial_mass": mass0,
+        "mean_initial_mass": m_mean,
+        "load_start_time": t0,
+        "bar_start_y": y_bar,
+    }
+    return settle, load, brk, info
+
+
+def relative_mass(times: np.ndarray, events: list[dict], mass0: float) -> np.ndarray:
+    """Total mass / initial mass at ``times`` (s) from the events' ``mass_lost`` (kg)."""
+    te = np.array([float(e["time"]) for e in events])
+    lost = np.array([float(e["mass_lost"]) for e in events])
+    cum = np.array([lost[te <= t].sum() for t in np.asarray(times, float)])
+    return 1.0 - cum / mass0
+
+
+def summarize(settle, load, brk, info, cfg) -> dict:
+    ev = brk.events
+    p = load.state.particles
+    act = np.asarray(p.active)
+    mass_final = float(np.asarray(p.mass)[act].sum())
+    mass0 = info["initial_mass"]
+    lost = float(sum(float(e["mass_lost"]) for e in ev))
+    series = load.series
+    t0 = info["load_start_time"]
+    spikes = metrics.kinetic_energy_spikes(
+        series["time"],
+        series["kinetic_energy"],
+        [float(e["time"]) for e in ev],
+        window=max(0.05 * cfg.load_time, 20 * cfg.record_every * float(brk.params.dt)),
+    )
+    pos = np.asarray(p.pos)[act]
+    w = load.state.walls
+    escaped = bool(
+        np.any(pos[:, 0] < 0)
+        or np.any(pos[:, 0] > cfg.box_width)
+        or np.any(pos[:, 1] < 0)
+        or np.any(pos[:, 1] > float(w.point[-1, 1]))
+    )
+    types = metrics.breakage_type_percentages(ev, info["mean_initial_mass"])
+    return {
+        "method": method_name(brk),
+        "n_particles_initial": int(np.asarray(settle.state.particles.active).sum()),
+        "n_particles_final": int(act.sum()),
+        "dt_s": float(brk.params.dt),
+        "dt_table_I_s": 5.0e-4,
+        "dt_note": "Table I's 5e-4 s exceeds the stability limit sqrt(2 m_min / K_n); dt here "
+        "is dt_safety x the limit of the smallest kept fragment",
+        "settle_time_s": float(settle.state.time),
+        "settled": bool(settle.stopped_early),
+        "load_time_s": float(load.state.time) - t0,
+        "bar_travel_m": float(info["bar_start_y"] - float(w.point[-1, 1])),
+        "bar_force_final_N": float(abs(series["wall_force"][-1, -1, 1])),
+        "bar_force_max_N": float(np.abs(series["wall_force"][:, -1, 1]).max()),
+        "steps": int(settle.steps + load.steps),
+        "wall_time_s": float(settle.wall_time_s + load.wall_time_s),
+        "n_events": len(ev),
+        "breakage_types": types,
+        "mass_lost_kg": lost,
+        "mass_lost_fraction": lost / mass0,
+        "mass_bookkeeping_error": abs((mass0 - lost) - mass_final) / mass0,
+        "ke_spikes": spikes,
+        "escaped": escaped,
+        "finite": bool(np.all(np.isfinite(np.asarray(p.pos)[act]))),
+        "fracture_planes": {
+            k: v.tolist() if hasattr(v, "tolist") else v
+            for k, v in metrics.fracture_plane_histogram(ev).items()
+        },
+        "locking": metrics.locking_effect(ev),
+        "snapshot_times_s": [float(s["t_load"]) for s in info["snapshots"]],
+        "regrows": list(settle.regrows) + list(load.regrows) + brk.log,
+        "strengths": brk.strengths() if hasattr(brk, "strengths") else {"eps_Pa": brk.eps},
+    }
+
+
+def figures(load, brk, info, cfg, out_dir: Path) -> list[str]:
+    """Snapshots (paper 000 Fig. 7) and the relative mass / speeds (Fig. 8)."""
+    from .. import plot
+    from ..io import world_vertices_np
+
+    plt = plot.plt
+    out = []
+    snaps = info["snapshots"]
+    fig, axes = plt.subplots(1, len(snaps), figsize=(3.2 * len(snaps), 3.4), squeeze=False)
+    uid0 = set(np.asarray(snaps[0]["uid"])[np.asarray(snaps[0]["active"])].tolist())
+    for ax, s in zip(axes[0], snaps, strict=True):
+        wv = world_vertices_np(s["verts"], s["n_verts"], s["pos"], s["angle"])
+        new = np.array([u not in uid0 for u in np.asarray(s["uid"]).tolist()], float)
+        walls = {
+            "point": s["wall_point"],
+            "normal": np.asarray(load.state.walls.normal),
+            "extent": np.asarray(load.state.walls.extent),
+        }
+        plot.draw_particles(
+            ax,
+            wv,
+            s["n_verts"],
+            s["radius"],
+            s["active"],
+            values=new,
+            cmap="coolwarm",
+            walls=walls,
+            colorbar=False,
+        )
+        ax.set_title(f"t = {s['t_load']:.2f} s", fontsize=9)
+    fig.tight_layout()
+    path = Path(out_dir) / "snapshots.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    out.append(str(path))
+    series = load.series
+    t = series["time"] - info["load_start_time"]
+    rel = relative_mass(series["time"], brk.events, info["initial_mass"])
+    out.append(
+        str(
+            plot.plot_series(
+                t, {"relative mass": rel}, "t (s)", "M / M0", Path(out_dir) / "relative_mass.png"
+            )
+        )
+    )
+    out.append(
+        str(
+            plot.plot_series(
+                t,
+                {
+                    "mean speed (m/s)": series["mean_speed"],
+                    "mean angular speed (rad/s)": series["mean_angular_speed"],
+                },
+                "t (s)",
+                "speed",
+                Path(out_dir) / "speeds.png",
+                logy=True,
+            )
+        )
+    )
+    return out
+
+
+def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
+    settle, load, brk, info = simulate_test(cfg, progress=progress)
+    summary = summarize(settle, load, brk, info, cfg)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figs = figures(load, brk, info, cfg, out_dir)
+    summary = write_outputs(
+        out_dir, "oedometer_cantor", cfg, load, brk.params, summary, events=brk.events, vtk=vtk
+    )
+    summary["figures"] = list(summary.get("figures", [])) + figs
+    from .. import io
+
+    io.write_summary(out_dir / "summary.json", summary)
+    return summary

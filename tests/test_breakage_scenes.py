@@ -1,0 +1,66 @@
+"""Breakage scenes: the breakage type of each method under N = 2, 3, 4 loads (paper 000
+Fig. 12) and the quick oedometric test of breakable pentagons (paper 000 §III)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from jaxgran.breakage import metrics
+from jaxgran.scenes import breakage_types as bt
+from jaxgran.scenes import oedometer_cantor as oc
+
+BT = dataclasses.replace(bt.Config(), **bt.QUICK)
+
+
+@pytest.fixture(scope="module")
+def types_table():
+    return {(r["configuration"], r["method"]): r for r in bt.run_table(BT)}
+
+
+def test_dsm_breakage_type_follows_the_loading(types_table):
+    got = {c: types_table[(c, "dsm")]["breakage_type"] for c in ("N2", "N3", "N4")}
+    assert got == {"N2": "splitting", "N3": "fragmentation", "N4": "chipping"}
+    # the Brazilian test breaks at the calibration force (within one load step)
+    f = types_table[("N2", "dsm")]["breaking_load_N"]
+    assert 150.79 / BT.ramp <= f <= 150.79 * BT.ramp
+
+
+def test_averaged_methods_cut_through_the_centroid_whatever_the_loading(types_table):
+    for conf in ("N2", "N3", "N4"):
+        cc = types_table[(conf, "cross-cut")]
+        assert cc["broke"] and cc["n_fragments"] == 4
+        assert cc["breakage_type"] == "fragmentation"  # four quarters: m_r = 0.25
+        mc = types_table[(conf, "mohr-coulomb")]
+        assert mc["broke"] and mc["n_fragments"] == 2 and mc["breakage_type"] == "splitting"
+    # split-cell needs (3 s1 - s2) / 2 > sigma_T: a nearly isotropic average (the pinched
+    # N4 grain) never reaches it; where it breaks, it halves the grain
+    for conf in ("N2", "N3"):
+        r = types_table[(conf, "split-cell")]
+        assert r["broke"] and r["n_fragments"] == 2 and r["breakage_type"] == "splitting"
+    assert not types_table[("N4", "split-cell")]["broke"]
+    md = bt.markdown_table(list(types_table.values()))
+    assert md.count("\n") == 5 and "chipping" in md
+
+
+def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
+    cfg = dataclasses.replace(oc.Config(), **oc.QUICK, method="split-cell")
+    settle, load, brk, info = oc.simulate_test(cfg)
+    s = oc.summarize(settle, load, brk, info, cfg)
+    assert s["finite"] and not s["escaped"]
+    assert s["n_events"] >= 1
+    # mass: final active mass = initial - sum of the events' losses (fines + erosion)
+    assert s["mass_bookkeeping_error"] < 1e-12
+    assert 0.0 <= s["mass_lost_fraction"] < 0.1
+    m0 = info["mean_initial_mass"]
+    for ev in brk.events:
+        m_r = float(np.min(ev["fragment_masses"])) / m0
+        want = "splitting" if m_r > 0.4 else "fragmentation" if m_r >= 0.1 else "chipping"
+        if ev["n_fines"] == 0:
+            assert metrics.event_breakage_type(ev, m0) == want
+        assert np.asarray(ev["planes"]).shape[0] == 1  # split-cell: one plane
+    assert len(s["ke_spikes"]) == s["n_events"]
+    assert s["snapshot_times_s"][0] == 0.0 and len(s["snapshot_times_s"]) == 4
+    rel = oc.relative_mass(load.series["time"], brk.events, info["initial_mass"])
+    assert rel[-1] == pytest.approx(1.0 - s["mass_lost_fraction"])
+    assert np.all(np.diff(rel) <= 0)
