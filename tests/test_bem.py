@@ -255,7 +255,8 @@ def test_brazilian_disc_against_closed_form(brazilian_runs):
     radius, load, t, runs = brazilian_runs
     pts, sigma = runs[128]
     assert len(pts) > 300
-    assert brazilian_error(radius, load, t, pts, sigma) <= 0.01
+    # acceptance: 1 %; measured 0.10 % (a load moved by the chord sagitta already gives 0.7 %)
+    assert brazilian_error(radius, load, t, pts, sigma) <= 0.003
 
 
 def test_brazilian_convergence_order(brazilian_runs):
