@@ -1,5 +1,8 @@
 """Lab tests, one module per scene. ``SCENES`` maps the CLI name to the module."""
 
+from . import bonded_biaxial as bonded_biaxial
+from . import bonded_brazilian as bonded_brazilian
+from . import bonded_cantilever as bonded_cantilever
 from . import brazilian_dsm as brazilian_dsm
 from . import breakage_types as breakage_types
 from . import deposit as deposit
@@ -12,4 +15,7 @@ SCENES = {
     "breakage-types": breakage_types,
     "oedometer-cantor": oedometer_cantor,
     "oedometer-voronoi": oedometer_voronoi,
+    "bonded-brazilian": bonded_brazilian,
+    "bonded-biaxial": bonded_biaxial,
+    "bonded-cantilever": bonded_cantilever,
 }

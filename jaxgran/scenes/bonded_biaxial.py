@@ -1,0 +1,570 @@
+"""Bonded biaxial test: a Voronoi block between four walls (paper 002 §4, in 2D).
+
+A rectangle ``width x height`` of bonded Voronoi cells (the Table-1-like 2D material of
+:mod:`jaxgran.scenes.bonded`, plane stress, thickness T) sits in a box of four walls
+(bottom, left, right, top). Stresses and strains are compression positive; s1 is the axial
+(vertical) and s3 the lateral stress, each the mean of its two walls' ``-F . n / (l T)``
+with ``l`` the current specimen size. The 2D invariants (:mod:`jaxgran.analysis`) are
+``p = (s1 + s3) / 2``, ``q = (s1 - s3) / 2``, ``eps_v = e1 + e3``, ``eps_d = e1 - e3``
+(e1 = 1 - H / H0, e3 = 1 - W / W0 from the wall positions).
+
+Tests, each optional and each run for ``realisations`` Voronoi seeds at once under vmap:
+
+1. **Unconfined compression** (paper 002 Eq. 24-25): lateral walls removed, axial walls
+   closing at ``strain_rate``; E_c = d s1 / d e1 on the rising branch (10-50 % of the peak)
+   and nu = -d e3 / d e1, with both strains from the cells' centroids in bands at the
+   specimen's edges (strain gauges, free of the platen contacts); E_c from the platens is
+   reported too. The peak is the unconfined strength.
+2. **Tension**: the axial walls are bonded to the cells that touch them
+   (:func:`jaxgran.bonds.attach_to_walls`, paper 002 §4.3) and pulled apart; E_t and the
+   direct tensile strength.
+3. **Constant-p shearing** for every ``p_values`` (one vmapped batch): isotropic compression
+   to p with four servo walls, then the axial walls move at constant strain rate while the
+   lateral servo walls hold ``s3 = 2 p - s1`` (:func:`jaxgran.scenes.bonded.apply_control`).
+   The walls are bonded to the block (paper 002 §4.3), so s3 may turn tensile at low p.
+   Peak and residual q (mean of the last ``residual_fraction`` of the strain), and the
+   Hoek-Brown fit of the peaks (paper 002 Eq. 30-31; regression of PHYSICS §F) with the
+   unconfined strength as the s3 = 0 point, its covariance and R^2. Hoek-Brown is a
+   criterion for confined compression: the fit uses the peaks with s3 >= 0 (with the
+   Table-1 material q_peak ~ 250 MPa, so p >= ~300 MPa); the fit to all peaks, including
+   those where the constant-p path has made s3 tensile, is reported as well.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import analysis as an
+from .. import ensemble as ens
+from ..integrate import servo_gain_for
+from ..state import WALL_FIXED, WALL_SERVO, WALL_VELOCITY, box_walls, replace
+from . import bonded as bd
+from .base import write_outputs
+
+SCENE = "bonded-biaxial"
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    width: float = 0.04  # m, W
+    height: float = 0.08  # m, H
+    n_cells: int = 200
+    seed: int = 0
+    realisations: int = 1  # Voronoi seeds per test, run under jax.vmap
+    lloyd_iterations: int = 2
+    p_values: tuple = (100.0e6, 200.0e6, 300.0e6, 400.0e6)  # Pa, constant-p shearing tests
+    unconfined: bool = True
+    tension: bool = True
+    strain_rate: float = 20.0  # 1/s, axial (both walls together / H)
+    max_strain: float = 0.04  # axial strain at the end of shearing
+    residual_fraction: float = 0.2  # last part of the shearing that gives the residual q
+    drop_fraction: float = 0.5  # unconfined / tension stop below this x the peak stress
+    iso_tolerance: float = 0.01  # isotropic stage ends when every wall is within this of p
+    iso_max_time: float = 2.0e-3  # s
+    servo_response: float = 0.15  # servo time constant in wave transit times across the block
+    band_fraction: float = 0.15  # strain-gauge bands: cells this close to an edge (x size)
+    dt_safety: float = 0.5
+    skin_fraction: float = 0.1
+    record_every: int = 50
+    records_per_segment: int = 10
+    # material (paper 002 Table 1 with T = 1 cm)
+    thickness: float = 0.01
+    areal_density: float = 27.0
+    normal_stiffness: float = 1.0e8
+    tangential_stiffness: float = 1.0e8
+    normal_damping: float = 2529.8
+    tangential_damping: float = 0.0
+    friction: float = 0.3
+    b_n: float = 20.0e9
+    b_t: float = 20.0e9
+    b_m: float = 3.3e9
+    eps_th: float = 0.02
+    theta_th: float = 0.05
+    sphero_fraction: float = 0.05
+
+
+QUICK = {"n_cells": 60, "p_values": (150.0e6, 300.0e6), "max_strain": 0.03, "strain_rate": 40.0}
+
+
+@dataclasses.dataclass
+class Setup:
+    """States (one per member, common shapes), shared parameters and grid."""
+
+    states: list
+    params: object
+    grid: object
+    material: bd.Material
+    gauges: list  # per member: cell indices of the bottom, left, right and top bands
+    gauge0: list  # per member: initial mean position of each band [4, 2] (m)
+
+
+def estimated_modulus(material: bd.Material) -> float:
+    """Order of magnitude of the block's modulus (Pa) for the servo gains: two vertex
+    contacts K_n per edge of the slab, ``K_n / T``."""
+    return material.normal_stiffness / material.thickness
+
+
+def _walls(cfg: Config, mat: bd.Material, p: float) -> list[dict]:
+    """Four servo walls around the block with target p (Pa) and a gain whose time constant
+    is ``servo_response`` wave transits across the block (estimated modulus)."""
+    w = box_walls((0.0, 0.0), (cfg.width, cfg.height))
+    e = estimated_modulus(mat)
+    c = math.sqrt(e * mat.thickness / mat.areal_density)
+    tau = cfg.servo_response * max(cfg.width, cfg.height) / c
+    for k, d in enumerate(w):
+        span = cfg.height if k in (bd.BOTTOM, bd.TOP) else cfg.width
+        length = d["length"]
+        d.update(
+            mode=WALL_SERVO,
+            target_stress=float(p),
+            servo_gain=servo_gain_for(
+                length, mat.thickness, e * mat.thickness * length / span, tau
+            ),
+            max_speed=2.0 * cfg.strain_rate * cfg.height,
+        )
+    return w
+
+
+def build(cfg: Config, members: list[tuple[int, float]], *, bond_walls=()) -> Setup:
+    """One state per ``(seed, p)`` member, padded to common capacities; walls in servo mode
+    with target p (Pa). ``bond_walls`` ties walls to the specimen (tension)."""
+    mat = bd.material_from(cfg)
+    cache: dict[int, bd.Specimen] = {}
+    for s, _ in members:
+        if s not in cache:
+            cache[s] = bd.rectangle_specimen(
+                cfg.width, cfg.height, cfg.n_cells, s, mat, lloyd_iterations=cfg.lloyd_iterations
+            )
+    specs = [cache[s] for s, _ in members]
+    n_wall = 0
+    if bond_walls:  # a generous bound on the cells touching the bonded walls
+        h = math.sqrt(cfg.width * cfg.height / cfg.n_cells)
+        n_wall = int(math.ceil(3.0 * 2.0 * (cfg.width + cfg.height) / h)) + 8
+    caps = bd.Capacities.covering(specs, wall_bonds=n_wall)
+    states = [
+        bd.assemble(sp, mat, _walls(cfg, mat, p), capacities=caps, bond_walls=tuple(bond_walls))
+        for sp, (_, p) in zip(specs, members, strict=True)
+    ]
+    dt = min(bd.stable_dt(s.particles, s.bonds, mat, cfg.dt_safety) for s in states)
+    h = math.sqrt(cfg.width * cfg.height / cfg.n_cells)
+    skin = cfg.skin_fraction * h
+    params = bd.make_bonded_params(mat, dt, skin)
+    grid = bd.grid_around(states, max(cfg.width, cfg.height), skin)
+    cap = bd.fit_pair_capacity(states, skin)
+    states = [bd.with_pair_capacity(s, cap) for s in states]
+    gauges, gauge0 = [], []
+    b = cfg.band_fraction
+    for s in states:
+        n = int(np.asarray(s.particles.active).sum())
+        pos = np.asarray(s.particles.pos)[:n]
+        x, y = pos[:, 0], pos[:, 1]
+        g = [
+            np.nonzero(y < b * cfg.height)[0],
+            np.nonzero(x < b * cfg.width)[0],
+            np.nonzero(x > (1 - b) * cfg.width)[0],
+            np.nonzero(y > (1 - b) * cfg.height)[0],
+        ]
+        gauges.append(g)
+        gauge0.append(np.array([pos[k].mean(axis=0) for k in g]))
+    return Setup(states, params, grid, mat, gauges, gauge0)
+
+
+# ------------------------------------------------------------------------------ stages
+
+
+def _set_walls(state, *, mode, velocity, active=None):
+    """Change the wall modes / velocities of a (possibly stacked) state; ``mode`` ``[4]``,
+    ``velocity`` ``[4, 2]`` (m/s)."""
+    w = state.walls
+    mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), w.mode.shape)
+    vel = jnp.broadcast_to(jnp.asarray(velocity, w.vel.dtype), w.vel.shape)
+    changes = {"mode": mode, "vel": vel}
+    if active is not None:
+        changes["active"] = jnp.broadcast_to(jnp.asarray(active), w.active.shape)
+    return replace(state, walls=replace(w, **changes))
+
+
+def _axial_velocity(cfg: Config, sign: float = 1.0) -> np.ndarray:
+    v = 0.5 * cfg.strain_rate * cfg.height * sign  # > 0: compression
+    return np.array([[0.0, v], [0.0, 0.0], [0.0, 0.0], [0.0, -v]])
+
+
+def _drive(setup: Setup, state, controls, cfg: Config, n_steps: int, callback, progress, desc):
+    batched = state.time.ndim == 1
+    return ens.drive(
+        state,
+        setup.params,
+        controls,
+        setup.grid,
+        n_steps=n_steps,
+        record_every=cfg.record_every,
+        records_per_segment=cfg.records_per_segment,
+        batched=batched,
+        callback=callback,
+        progress=progress,
+        desc=desc,
+    )
+
+
+def _as_batch(states: list):
+    return ens.stack(states) if len(states) > 1 else states[0]
+
+
+def stresses(series: dict, thickness: float):
+    """Axial and lateral stress (Pa, compression positive) and the block's height and width
+    (m) per record, from the interval-averaged wall forces; batched series keep their K
+    axis."""
+    f = np.asarray(series["wall_force"], float)
+    x = np.asarray(series["wall_point"], float)
+    normal = np.array([[0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, -1.0]])
+    fn = -np.einsum("...wk,wk->...w", f, normal)
+    height = x[..., bd.TOP, 1] - x[..., bd.BOTTOM, 1]
+    width = x[..., bd.RIGHT, 0] - x[..., bd.LEFT, 0]
+    s_ax = 0.5 * (fn[..., bd.BOTTOM] + fn[..., bd.TOP]) / (width * thickness)
+    s_lat = 0.5 * (fn[..., bd.LEFT] + fn[..., bd.RIGHT]) / (height * thickness)
+    return s_ax, s_lat, height, width
+
+
+def isotropic_then_shear(
+    cfg: Config, seeds: list[int], p_values, *, progress: bool = False, setup: Setup | None = None
+):
+    """Stage 1 (isotropic servo compression to p) and stage 2 (constant-p shearing) for
+    every (seed, p); returns ``(shear EnsembleResult, isotropic EnsembleResult, Setup,
+    members)``."""
+    members = [(s, float(p)) for s in seeds for p in p_values]
+    # s3 = 2 p - s1 turns tensile at low p: the walls hold the block by wall bonds (§4.3)
+    setup = setup or build(cfg, members, bond_walls=(bd.BOTTOM, bd.LEFT, bd.RIGHT, bd.TOP))
+    dt = float(setup.params.dt)
+    state = _as_batch(setup.states)
+    controls = _as_batch(
+        [
+            bd.make_control(s, p_target=p, box=True)
+            for s, (_, p) in zip(setup.states, members, strict=True)
+        ]
+    )
+    targets = np.array([p for _, p in members])
+
+    def settled(s, rec):
+        s_ax, s_lat, *_ = stresses({k: rec[k][-1:] for k in rec}, setup.material.thickness)
+        err = np.maximum(np.abs(s_ax - targets), np.abs(s_lat - targets)) / targets
+        return s, bool(np.all(err < cfg.iso_tolerance)) and float(rec["time"].ravel()[-1]) > 0
+
+    iso = _drive(
+        setup, state, controls, cfg, int(cfg.iso_max_time / dt), settled, progress, "isotropic"
+    )
+    state = _set_walls(
+        iso.state,
+        mode=[WALL_VELOCITY, WALL_SERVO, WALL_SERVO, WALL_VELOCITY],
+        velocity=_axial_velocity(cfg),
+    )
+    controls = replace(controls, p_constant=jnp.ones_like(controls.p_constant))
+    n_steps = int(math.ceil(cfg.max_strain / cfg.strain_rate / dt))
+    shear = _drive(setup, state, controls, cfg, n_steps, None, progress, "constant-p shear")
+    return shear, iso, setup, members
+
+
+def measure_shear(run, p_target: float, thickness: float, residual_fraction: float) -> dict:
+    """Peak / residual q, the strains at the peak and the drift of p during shearing."""
+    s_ax, s_lat, height, width = stresses(run.series, thickness)
+    e1 = 1.0 - height / height[0]
+    e3 = 1.0 - width / width[0]
+    p, q = an.pq_invariants(s_ax, s_lat)
+    ev, ed = an.strain_invariants(e1, e3)
+    k = int(np.argmax(q))
+    tail = e1 >= (1.0 - residual_fraction) * e1[-1]
+    start = e1 > 0.05 * e1[-1]  # after the first records, once the axial walls move
+    dev = np.abs(p[start] - p_target) / p_target
+    pre = np.abs(p[start[: k + 1].nonzero()[0]] - p_target) / p_target
+    t = np.asarray(run.series["time"], float)
+    ava = an.second_avalanche(t, np.asarray(run.series["n_broken"]))
+    extra = {}
+    if ava["onset_time"] is not None:  # paper 002 Fig. 23: the avalanche that makes the peak
+        extra = {
+            "avalanche_onset_axial_strain": float(np.interp(ava["onset_time"], t, e1)),
+            "bonds_broken_before_avalanche": ava["n_before"],
+        }
+    return extra | {
+        "p_target_Pa": p_target,
+        "q_peak_Pa": float(q[k]),
+        "p_at_peak_Pa": float(p[k]),
+        "sigma_1_peak_Pa": float(s_ax[k]),
+        "sigma_3_peak_Pa": float(s_lat[k]),
+        "axial_strain_at_peak": float(e1[k]),
+        "q_residual_Pa": float(q[tail].mean()),
+        "p_max_relative_deviation": float(dev.max()) if dev.size else float("nan"),
+        "p_mean_relative_deviation": float(dev.mean()) if dev.size else float("nan"),
+        "p_max_relative_deviation_to_peak": float(pre.max()) if pre.size else float("nan"),
+        "volumetric_strain_at_peak": float(ev[k]),
+        "volumetric_strain_final": float(ev[-1]),
+        "deviatoric_strain_final": float(ed[-1]),
+        "n_broken_final": int(np.asarray(run.series["n_broken"])[-1]),
+    }
+
+
+def gauge_strains(series: dict, gauge0: np.ndarray):
+    """Axial and lateral strain (compression positive) per record from the bands' mean
+    positions (series ``gauge_position`` ``[R, 4, 2]``, initial ``gauge0`` ``[4, 2]``, m)."""
+    g = np.asarray(series["gauge_position"], float)
+    e1 = 1.0 - (g[:, bd.TOP, 1] - g[:, bd.BOTTOM, 1]) / (gauge0[bd.TOP, 1] - gauge0[bd.BOTTOM, 1])
+    e3 = 1.0 - (g[:, bd.RIGHT, 0] - g[:, bd.LEFT, 0]) / (gauge0[bd.RIGHT, 0] - gauge0[bd.LEFT, 0])
+    return e1, e3
+
+
+def unconfined(cfg: Config, seeds: list[int], *, progress: bool = False):
+    """Unconfined compression of each seed's block (lateral walls off)."""
+    members = [(s, 0.0) for s in seeds]
+    setup = build(cfg, members)
+    state = _set_walls(
+        _as_batch(setup.states),
+        mode=[WALL_VELOCITY, WALL_FIXED, WALL_FIXED, WALL_VELOCITY],
+        velocity=_axial_velocity(cfg),
+        active=[True, False, False, True],
+    )
+    controls = _as_batch(
+        [
+            bd.make_control(s, box=True, gauges=g)
+            for s, g in zip(setup.states, setup.gauges, strict=True)
+        ]
+    )
+    dt = float(setup.params.dt)
+    stop = _peak_stopper(cfg, len(members), len(members) > 1, setup.material.thickness, 1.0)
+    n_steps = int(math.ceil(2.0 * cfg.max_strain / cfg.strain_rate / dt))
+    res = _drive(setup, state, controls, cfg, n_steps, stop, progress, "unconfined")
+    return res, setup
+
+
+def tension(cfg: Config, seeds: list[int], *, progress: bool = False):
+    """Direct tension: axial walls bonded to the block and pulled apart."""
+    members = [(s, 0.0) for s in seeds]
+    setup = build(cfg, members, bond_walls=(bd.BOTTOM, bd.TOP))
+    state = _set_walls(
+        _as_batch(setup.states),
+        mode=[WALL_VELOCITY, WALL_FIXED, WALL_FIXED, WALL_VELOCITY],
+        velocity=_axial_velocity(cfg, -1.0),
+        active=[True, False, False, True],
+    )
+    controls = _as_batch(
+        [
+            bd.make_control(s, box=True, gauges=g)
+            for s, g in zip(setup.states, setup.gauges, strict=True)
+        ]
+    )
+    dt = float(setup.params.dt)
+    stop = _peak_stopper(cfg, len(members), len(members) > 1, setup.material.thickness, -1.0)
+    n_steps = int(math.ceil(2.0 * cfg.max_strain / cfg.strain_rate / dt))
+    res = _drive(setup, state, controls, cfg, n_steps, stop, progress, "tension")
+    return res, setup
+
+
+def _peak_stopper(cfg: Config, n: int, batched: bool, thickness: float, sign: float):
+    top = np.zeros(n)
+    done = np.zeros(n, bool)
+
+    def callback(state, rec):
+        s_ax, *_ = stresses(rec, thickness)
+        s = sign * (s_ax if batched else s_ax[:, None])
+        top[:] = np.maximum(top, s.max(axis=0))
+        past = s.max(axis=0) < top
+        done[:] = done | (past & (s[-1] < cfg.drop_fraction * top))
+        return state, bool(done.all())
+
+    return callback
+
+
+def measure_elastic(run, gauge0: np.ndarray, thickness: float, sign: float) -> dict:
+    """Modulus (Pa) and Poisson ratio from the rising branch (10-50 % of the peak) of an
+    unconfined (``sign`` +1) or tension (-1) test, paper 002 Eq. 24-25: strains from the
+    gauge bands (``modulus_Pa``, ``poisson_ratio``) and from the platens
+    (``modulus_platens_Pa``)."""
+    s_ax, _, height, _ = stresses(run.series, thickness)
+    s = sign * s_ax
+    e_wall = sign * (1.0 - height / height[0])
+    e1, e3 = gauge_strains(run.series, gauge0)
+    k = int(np.argmax(s))
+    out = {"strength_Pa": float(s[k]), "strain_at_peak": float(e_wall[k])}
+    fit_w = an.fit_window(e_wall, s, 0.1, 0.5)
+    out["modulus_platens_Pa"] = fit_w["slope"]
+    out["modulus_platens_r2"] = fit_w["r2"]
+    sel = np.zeros(s.size, bool)
+    sel[: k + 1] = (s[: k + 1] >= 0.1 * s[k]) & (s[: k + 1] <= 0.5 * s[k])
+    if sel.sum() >= 3:
+        fit = an.linear_fit(sign * e1[sel], s[sel])
+        out["modulus_Pa"] = fit["slope"]
+        out["modulus_err_Pa"] = fit["slope_err"]
+        out["modulus_r2"] = fit["r2"]
+        nu = an.linear_fit(e1[sel], e3[sel])
+        out["poisson_ratio"] = -nu["slope"]
+        out["poisson_ratio_err"] = nu["slope_err"]
+    return out
+
+
+# ------------------------------------------------------------------------------ run
+
+
+def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
+    out_dir = Path(out_dir)
+    seeds = [cfg.seed + k for k in range(max(1, cfg.realisations))]
+    T = cfg.thickness
+    summary: dict = {"n_cells": cfg.n_cells, "thickness_m": T, "realisations": len(seeds)}
+    curves: dict = {}
+    wall_time = 0.0
+    first_run = None
+
+    def mean_std(values: list[dict], prefix: str):
+        stats = an.summary_stats(values)
+        for key, s in stats.items():
+            summary[f"{prefix}{key}"] = s["mean"]
+            if len(values) > 1:
+                summary[f"{prefix}{key}_std"] = s["std"]
+
+    ucs = []
+    if cfg.unconfined:
+        res, setup = unconfined(cfg, seeds, progress=progress)
+        wall_time += res.wall_time_s
+        per = [
+            measure_elastic(res.realisation(k), setup.gauge0[k], T, 1.0) for k in range(res.size)
+        ]
+        mean_std(per, "unconfined_")
+        summary["E_c_Pa"] = summary.get("unconfined_modulus_Pa")
+        summary["poisson_ratio"] = summary.get("unconfined_poisson_ratio")
+        ucs = [v["strength_Pa"] for v in per]
+        curves["unconfined"] = res.realisation(0)
+        first_run = (res.realisation(0), setup.params)
+    if cfg.tension:
+        res, setup = tension(cfg, seeds, progress=progress)
+        wall_time += res.wall_time_s
+        per = [
+            measure_elastic(res.realisation(k), setup.gauge0[k], T, -1.0) for k in range(res.size)
+        ]
+        mean_std(per, "tension_")
+        summary["E_t_Pa"] = summary.get("tension_modulus_Pa")
+        curves["tension"] = res.realisation(0)
+    peaks = []
+    if cfg.p_values:
+        shear, iso, setup, members = isotropic_then_shear(
+            cfg, seeds, cfg.p_values, progress=progress
+        )
+        wall_time += shear.wall_time_s + iso.wall_time_s
+        per = [
+            measure_shear(shear.realisation(k), p, T, cfg.residual_fraction)
+            for k, (_, p) in enumerate(members)
+        ]
+        summary["shear"] = per
+        for p in cfg.p_values:
+            rows = [v for v, (_, pm) in zip(per, members, strict=True) if pm == float(p)]
+            stats = an.summary_stats(rows)
+            summary.setdefault("shear_by_p", []).append(
+                {
+                    k: stats[k]
+                    for k in (
+                        "q_peak_Pa",
+                        "q_residual_Pa",
+                        "p_max_relative_deviation",
+                        "p_max_relative_deviation_to_peak",
+                    )
+                }
+                | {"p_Pa": float(p)}
+            )
+        peaks = [(v["sigma_1_peak_Pa"], v["sigma_3_peak_Pa"]) for v in per]
+        curves["shear"] = [shear.realisation(k) for k in range(shear.size)]
+        summary.update(bd.pooled_bursts(curves["shear"]))
+        first_run = (shear.realisation(0), setup.params)
+    s1 = np.array([a for a, _ in peaks] + list(ucs))
+    s3 = np.array([b for _, b in peaks] + [0.0] * len(ucs))
+    # Hoek-Brown describes confined compression: fit the peaks with s3 >= 0 (at low p the
+    # constant-p path drives s3 into tension); the fit to all peaks is reported beside it
+    for name, keep in (("hoek_brown", s3 >= 0.0), ("hoek_brown_all_peaks", s3 == s3)):
+        if keep.sum() >= 3:
+            try:
+                summary[name] = an.hoek_brown_fit(s1[keep], s3[keep])
+            except ValueError as exc:
+                summary[name + "_error"] = str(exc)
+        else:
+            summary[name + "_error"] = f"{int(keep.sum())} peaks, a fit needs 3"
+    summary["wall_time_s"] = wall_time
+    if first_run is None:
+        raise ValueError("nothing to run: enable unconfined, tension or give p_values")
+    r0, params = first_run
+    summary = write_outputs(out_dir, SCENE, cfg, r0, params, summary, vtk=vtk)
+    from .. import io
+
+    for name in ("unconfined", "tension"):  # run.h5 holds the first shearing test
+        if name in curves:
+            meta = {"scene": SCENE, "test": name}
+            io.write_run(out_dir / f"{name}.h5", curves[name], params, metadata=meta)
+    figs = _figures(curves, summary, cfg, out_dir)
+    summary["figures"] = list(summary.get("figures", [])) + [str(p) for p in figs]
+    io.write_summary(out_dir / "summary.json", summary)
+    return summary
+
+
+def _figures(curves: dict, summary: dict, cfg: Config, out_dir: Path) -> list[Path]:
+    """Stress-strain curves, q and eps_v against eps_1 for every p, the p-q peak envelope
+    with the Hoek-Brown fit (Agg backend, imported here only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    T = cfg.thickness
+    paths = []
+    if "unconfined" in curves or "tension" in curves:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for name, sign in (("unconfined", 1.0), ("tension", -1.0)):
+            if name in curves:
+                s_ax, _, h, _ = stresses(curves[name].series, T)
+                ax.plot(100 * sign * (1 - h / h[0]), sign * s_ax / 1e6, label=name)
+        ax.set_xlabel("axial strain (%, in the loading direction)")
+        ax.set_ylabel("axial stress (MPa)")
+        ax.legend()
+        ax.grid(True, alpha=0.3)
+        paths.append(out_dir / "elastic_tests.png")
+        fig.savefig(paths[-1], dpi=150, bbox_inches="tight")
+        plt.close(fig)
+    if "shear" in curves:
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+        for k, run in enumerate(curves["shear"]):
+            s_ax, s_lat, h, w = stresses(run.series, T)
+            e1, e3 = 1 - h / h[0], 1 - w / w[0]
+            _, q = an.pq_invariants(s_ax, s_lat)
+            ev, _ = an.strain_invariants(e1, e3)
+            p = summary["shear"][k]["p_target_Pa"]
+            a1.plot(100 * e1, q / 1e6, label=f"p = {p / 1e6:g} MPa")
+            a2.plot(100 * e1, 100 * ev)
+        a1.set_xlabel("axial strain e1 (%)")
+        a1.set_ylabel("q (MPa)")
+        a1.legend(fontsize=7)
+        a2.set_xlabel("axial strain e1 (%)")
+        a2.set_ylabel("volumetric strain eps_v (%, contraction > 0)")
+        for a in (a1, a2):
+            a.grid(True, alpha=0.3)
+        paths.append(out_dir / "shear.png")
+        fig.savefig(paths[-1], dpi=150, bbox_inches="tight")
+        plt.close(fig)
+    hb = summary.get("hoek_brown")
+    if hb and "shear" in summary:
+        fig, ax = plt.subplots(figsize=(5, 4))
+        pk = [(v["p_at_peak_Pa"], v["q_peak_Pa"]) for v in summary["shear"]]
+        rs = [(v["p_at_peak_Pa"], v["q_residual_Pa"]) for v in summary["shear"]]
+        ax.plot(*np.array(pk).T / 1e6, "o", label="peak")
+        ax.plot(*np.array(rs).T / 1e6, "s", label="residual")
+        pp = np.linspace(0, max(p for p, _ in pk) * 1.1, 50)
+        ax.plot(
+            pp / 1e6,
+            an.hoek_brown_q(pp, hb["A"], hb["B"]) / 1e6,
+            "-",
+            label=f"Hoek-Brown A={hb['A'] / 1e6:.0f} MPa, B={hb['B'] / 1e6:.0f} MPa",
+        )
+        ax.set_xlabel("p (MPa)")
+        ax.set_ylabel("q (MPa)")
+        ax.legend(fontsize=7)
+        ax.grid(True, alpha=0.3)
+        paths.append(out_dir / "envelope.png")
+        fig.savefig(paths[-1], dpi=150, bbox_inches="tight")
+        plt.close(fig)
+    return paths

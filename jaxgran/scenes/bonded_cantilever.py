@@ -1,0 +1,372 @@
+"""Bonded cantilever: a Voronoi beam clamped at one end with a tip load, against
+Euler-Bernoulli (paper 002 §4.2, Eq. 29, Fig. 14-15, in 2D plane stress).
+
+A beam of length L and depth s (slab thickness T) of bonded Voronoi cells (the material of
+:mod:`jaxgran.scenes.bonded`) is clamped by fixing the cells whose centroids lie within
+``clamp_length`` of its left end (``Particles.fixed``, zero velocity); the clamp line x_c is
+that distance from the end. A downward force F acts on the cells within ``tip_length`` of the
+right end, shared in proportion to their masses (a body force; the state has no external
+force field, so :class:`jaxgran.scenes.bonded.Control` applies it as an impulse per step). F
+is ramped up over one period of the first bending mode and then held, with a global viscous
+damping (critical for that mode) so the beam relaxes to its static shape; there is no
+gravity.
+
+The deflection w(x) of the middle line (the centroids of the cells within ``band`` of
+y = s/2) is compared with Euler-Bernoulli for a load at distance a = x_F - x_c from the
+clamp (x_F the load's centre of mass): ``w = F x^2 (3 a - x) / (6 E I)`` for x <= a and its
+straight continuation beyond (Eq. 29 with L -> a), ``I = T s^3 / 12``. E is the unconfined
+compression modulus E_c measured on the same material (same cell size) by
+:func:`jaxgran.scenes.bonded_biaxial.unconfined` with strain-gauge bands (the run is cited in
+the summary: its configuration and seed), unless ``youngs_modulus`` is given. A beam in
+bending is also stretched on its tension side, whose modulus E_t (B_n-controlled) differs
+from E_c (K_n-controlled), so the bimodular flexural modulus
+``E_f = 4 E_t E_c / (sqrt(E_t) + sqrt(E_c))^2`` is reported and compared as well.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import ensemble as ens
+from ..state import replace
+from . import bonded as bd
+from . import bonded_biaxial as bx
+from .base import write_outputs
+
+SCENE = "bonded-cantilever"
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    length: float = 0.30  # m, L
+    depth: float = 0.05  # m, s
+    n_cells: int = 400
+    seed: int = 0  # Voronoi seed of realisation 0 (realisation k uses seed + k)
+    realisations: int = 1  # K > 1: K beams under jax.vmap, mean +- std reported
+    lloyd_iterations: int = 2
+    clamp_length: float = 0.02  # m, fixed cells' centroids within this of the left end
+    tip_length: float = 0.02  # m, loaded cells' centroids within this of the right end
+    max_bending_stress: float = 10.0e6  # Pa, sets F = sigma T s^2 / (6 a)
+    band: float = 0.25  # middle-line cells: |y - s/2| < band x s
+    ramp_periods: float = 1.0  # load ramp, in periods of the first bending mode
+    hold_periods: float = 2.0  # then held this long
+    damping_ratio: float = 1.0  # global damping / critical damping of the first mode
+    youngs_modulus: float = 0.0  # Pa; 0 = measure E_c (and E_t) on the same material
+    measure_cells: int = 0  # cells of the measuring block (0: same cell size, W = s, H = 2 s)
+    dt_safety: float = 0.5
+    skin_fraction: float = 0.1
+    record_every: int = 100
+    records_per_segment: int = 10
+    # material (paper 002 Table 1 with T = 1 cm)
+    thickness: float = 0.01
+    areal_density: float = 27.0
+    normal_stiffness: float = 1.0e8
+    tangential_stiffness: float = 1.0e8
+    normal_damping: float = 2529.8
+    tangential_damping: float = 0.0
+    friction: float = 0.3
+    b_n: float = 20.0e9
+    b_t: float = 20.0e9
+    b_m: float = 3.3e9
+    eps_th: float = 0.02
+    theta_th: float = 0.05
+    sphero_fraction: float = 0.05
+
+
+QUICK = {"length": 0.15, "depth": 0.03, "n_cells": 90, "clamp_length": 0.015, "tip_length": 0.015}
+
+
+def cell_size(cfg: Config) -> float:
+    return math.sqrt(cfg.length * cfg.depth / cfg.n_cells)
+
+
+def measure_moduli(cfg: Config, seeds: list[int], *, progress: bool = False) -> list[dict]:
+    """E_c and nu (unconfined compression) and E_t (tension) of the beam's material for each
+    seed, on a block W = s, H = 2 s with the beam's cell size (paper 002 Eq. 24-25), all
+    seeds in one vmapped batch."""
+    h = cell_size(cfg)
+    n = cfg.measure_cells or max(30, int(round(2.0 * cfg.depth**2 / h**2)))
+    names = {f.name for f in dataclasses.fields(bx.Config)}
+    common = {k: getattr(cfg, k) for k in names if hasattr(cfg, k) and k != "n_cells"}
+    bcfg = dataclasses.replace(
+        bx.Config(),
+        **(common | {"width": cfg.depth, "height": 2.0 * cfg.depth, "n_cells": n}),
+    )
+    res_c, set_c = bx.unconfined(bcfg, seeds, progress=progress)
+    res_t, set_t = bx.tension(bcfg, seeds, progress=progress)
+    out = []
+    for k, seed in enumerate(seeds):
+        c = bx.measure_elastic(res_c.realisation(k), set_c.gauge0[k], cfg.thickness, 1.0)
+        t = bx.measure_elastic(res_t.realisation(k), set_t.gauge0[k], cfg.thickness, -1.0)
+        out.append(
+            {
+                "E_c_Pa": c.get("modulus_Pa", c["modulus_platens_Pa"]),
+                "E_c_platens_Pa": c["modulus_platens_Pa"],
+                "poisson_ratio": c.get("poisson_ratio", float("nan")),
+                "E_t_Pa": t.get("modulus_Pa", t["modulus_platens_Pa"]),
+                "measured_on": {
+                    "scene": bx.SCENE,
+                    "tests": "unconfined compression (gauge bands) and tension",
+                    "seed": seed,
+                    "config": dataclasses.asdict(bcfg),
+                },
+            }
+        )
+    return out
+
+
+@dataclasses.dataclass
+class Setup:
+    """Beams of common shapes (one per seed), shared parameters and grid."""
+
+    states: list
+    controls: list
+    geos: list
+    params: object
+    grid: object
+
+
+def build(cfg: Config, seeds: list[int]) -> Setup:
+    """Beam states (clamp cells fixed) padded to common capacities, their controls (tip load,
+    damping) and the geometry used to compare with beam theory."""
+    mat = bd.material_from(cfg)
+    specs = [
+        bd.rectangle_specimen(
+            cfg.length, cfg.depth, cfg.n_cells, s, mat, lloyd_iterations=cfg.lloyd_iterations
+        )
+        for s in seeds
+    ]
+    caps = bd.Capacities.covering(specs)
+    states, loads, geos = [], [], []
+    for spec in specs:
+        state = bd.assemble(spec, mat, [], capacities=caps)
+        n = spec.n_particles
+        pos0 = np.asarray(state.particles.pos)[:n]
+        clamp = pos0[:, 0] < cfg.clamp_length
+        tip = pos0[:, 0] > cfg.length - cfg.tip_length
+        if not clamp.any() or not tip.any():
+            raise ValueError("no cell in the clamp or tip region; enlarge clamp/tip_length")
+        fixed = np.zeros(state.particles.capacity, bool)
+        fixed[:n] = clamp
+        state = replace(state, particles=replace(state.particles, fixed=jnp.asarray(fixed)))
+        mass = np.asarray(state.particles.mass)[:n]
+        x_f = float(np.sum(mass[tip] * pos0[tip, 0]) / mass[tip].sum())
+        arm = x_f - cfg.clamp_length
+        force = cfg.max_bending_stress * cfg.thickness * cfg.depth**2 / (6.0 * arm)
+        ext = np.zeros((state.particles.capacity, 2))
+        ext[:n][tip, 1] = -force * mass[tip] / mass[tip].sum()
+        states.append(state)
+        loads.append(ext)
+        geos.append(
+            {
+                "centroids": pos0,
+                "force_N": force,
+                "arm_m": arm,
+                "x_clamp_m": cfg.clamp_length,
+                "x_load_m": x_f,
+                "second_moment_m4": cfg.thickness * cfg.depth**3 / 12.0,
+                "n_fixed": int(clamp.sum()),
+                "n_loaded": int(tip.sum()),
+            }
+        )
+    dt = min(bd.stable_dt(s.particles, s.bonds, mat, cfg.dt_safety) for s in states)
+    skin = cfg.skin_fraction * cell_size(cfg)
+    params = bd.make_bonded_params(mat, dt, skin)
+    grid = bd.grid_around(states, 0.3 * cfg.length, skin)
+    cap = bd.fit_pair_capacity(states, skin)
+    states = [bd.with_pair_capacity(s, cap) for s in states]
+    # first bending mode of the clamped beam (estimated modulus K_n / T), for the time scales
+    e_est = bx.estimated_modulus(mat)
+    i_area = cfg.thickness * cfg.depth**3 / 12.0
+    m_line = mat.areal_density * cfg.depth
+    arm = max(g["arm_m"] for g in geos)
+    omega1 = 1.875**2 * math.sqrt(e_est * i_area / (m_line * arm**4))
+    period = 2.0 * math.pi / omega1
+    controls = []
+    for s, ext, g in zip(states, loads, geos, strict=True):
+        g["period_s"] = period
+        controls.append(
+            bd.make_control(
+                s,
+                external_force=ext,
+                ramp_time=cfg.ramp_periods * period,
+                damping=2.0 * cfg.damping_ratio * omega1,
+            )
+        )
+    return Setup(states, controls, geos, params, grid)
+
+
+def euler_bernoulli(x, force: float, arm: float, modulus: float, i_area: float) -> np.ndarray:
+    """Deflection (m, positive down) of a cantilever under a point load F (N) at distance
+    ``arm`` (m) from the clamp, paper 002 Eq. 29 (with L = arm), straight beyond the load."""
+    x = np.clip(np.asarray(x, float), 0.0, None)
+    xa = np.minimum(x, arm)
+    w = force * xa**2 * (3.0 * arm - xa) / (6.0 * modulus * i_area)
+    slope = force * arm**2 / (2.0 * modulus * i_area)
+    return w + slope * np.maximum(x - arm, 0.0)
+
+
+def deflection(state, geo: dict, cfg: Config):
+    """Middle-line cells: distance from the clamp (m) and downward displacement (m)."""
+    c0 = geo["centroids"]  # initial particle positions (m)
+    n = len(c0)
+    mid = np.abs(c0[:, 1] - 0.5 * cfg.depth) < cfg.band * cfg.depth
+    mid &= c0[:, 0] > geo["x_clamp_m"]
+    pos = np.asarray(state.particles.pos)[:n]
+    x = c0[mid, 0] - geo["x_clamp_m"]
+    w = -(pos[mid, 1] - c0[mid, 1])
+    order = np.argsort(x)
+    return x[order], w[order]
+
+
+def simulate_test(cfg: Config, seeds: list[int], *, progress: bool = False):
+    """Load and relax the beams of ``seeds`` (vmapped when more than one)."""
+    setup = build(cfg, seeds)
+    total = (cfg.ramp_periods + cfg.hold_periods) * setup.geos[0]["period_s"]
+    n_steps = int(math.ceil(total / float(setup.params.dt)))
+    batched = len(seeds) > 1
+    res = ens.drive(
+        ens.stack(setup.states) if batched else setup.states[0],
+        setup.params,
+        ens.stack(setup.controls) if batched else setup.controls[0],
+        setup.grid,
+        n_steps=n_steps,
+        record_every=cfg.record_every,
+        records_per_segment=cfg.records_per_segment,
+        batched=batched,
+        progress=progress,
+        desc=SCENE,
+        frame_every=max(1, n_steps // (cfg.record_every * cfg.records_per_segment * 10)),
+    )
+    return res, setup
+
+
+def compare(res, geo: dict, cfg: Config, moduli: dict) -> dict:
+    """DEM middle-line deflection against Eq. 29 with E_c and with the flexural modulus."""
+    x, w = deflection(res.state, geo, cfg)
+    i_area, f, a = geo["second_moment_m4"], geo["force_N"], geo["arm_m"]
+    out = {}
+    e_c = moduli["E_c_Pa"]
+    cases = {"E_c": e_c}
+    if moduli.get("E_t_Pa", 0.0) > 0:
+        e_t = moduli["E_t_Pa"]
+        cases["E_flexural"] = 4.0 * e_t * e_c / (math.sqrt(e_t) + math.sqrt(e_c)) ** 2
+        out["E_flexural_Pa"] = cases["E_flexural"]
+    near = x > 0.9 * a
+    w_tip = float(np.mean(w[near])) if near.any() else float(w[-1])
+    out["tip_deflection_m"] = w_tip
+    for name, e in cases.items():
+        theory = euler_bernoulli(x, f, a, e, i_area)
+        tip_theory = float(np.mean(theory[near])) if near.any() else float(theory[-1])
+        out[f"tip_deflection_theory_{name}_m"] = tip_theory
+        out[f"tip_error_{name}"] = w_tip / tip_theory - 1.0
+        out[f"rms_error_{name}"] = float(
+            np.sqrt(np.mean((w - theory) ** 2)) / max(np.max(np.abs(theory)), 1e-300)
+        )
+    # the modulus that makes Eq. 29 fit the DEM tip deflection best
+    shape = euler_bernoulli(x, f, a, 1.0, i_area)
+    out["E_fitted_Pa"] = float(np.sum(shape * shape) / np.sum(shape * w))
+    out["n_middle_cells"] = int(x.size)
+    return out
+
+
+def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
+    out_dir = Path(out_dir)
+    seeds = [cfg.seed + k for k in range(max(1, cfg.realisations))]
+    if cfg.youngs_modulus > 0:
+        moduli = [{"E_c_Pa": cfg.youngs_modulus, "measured_on": "given (youngs_modulus)"}] * len(
+            seeds
+        )
+    else:
+        moduli = measure_moduli(cfg, seeds, progress=progress)
+    res, setup = simulate_test(cfg, seeds, progress=progress)
+    per = []
+    for k in range(res.size):
+        rk = res.realisation(k)
+        g = setup.geos[k]
+        per.append(
+            {
+                "force_N": g["force_N"],
+                "arm_m": g["arm_m"],
+                "n_fixed_cells": g["n_fixed"],
+                "n_loaded_cells": g["n_loaded"],
+                "n_broken": int(np.asarray(rk.series["n_broken"])[-1]),
+                "final_kinetic_energy_J": float(rk.series["kinetic_energy"][-1]),
+                **moduli[k],
+                **compare(rk, g, cfg, moduli[k]),
+            }
+        )
+    summary = ens.ensemble_summary(per)
+    summary.update(
+        {
+            "second_moment_m4": setup.geos[0]["second_moment_m4"],
+            "first_mode_period_s": setup.geos[0]["period_s"],
+            "steps": int(res.steps),
+            "dt_s": float(setup.params.dt),
+            "wall_time_s": float(res.wall_time_s),
+        }
+    )
+    r0 = res.realisation(0)
+    summary = write_outputs(out_dir, SCENE, cfg, r0, setup.params, summary, vtk=vtk)
+    figs = _figures(r0, setup.geos[0], cfg, moduli[0], out_dir)
+    summary["figures"] = list(summary.get("figures", [])) + [str(p) for p in figs]
+    from .. import io
+
+    io.write_summary(out_dir / "summary.json", summary)
+    return summary
+
+
+def _figures(res, geo: dict, cfg: Config, moduli: dict, out_dir: Path) -> list[Path]:
+    """Middle-line deflection against Euler-Bernoulli, and the tip deflection against time
+    (Agg backend, imported here only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x, w = deflection(res.state, geo, cfg)
+    xs = np.linspace(0.0, x.max(), 100)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(100 * x, 1e3 * w, "o", ms=3, label="DEM middle line")
+    args = (geo["force_N"], geo["arm_m"])
+    i_area = geo["second_moment_m4"]
+    ax.plot(
+        100 * xs,
+        1e3 * euler_bernoulli(xs, *args, moduli["E_c_Pa"], i_area),
+        "-",
+        label="Eq. 29, E_c",
+    )
+    if "E_t_Pa" in moduli:
+        e_t, e_c = moduli["E_t_Pa"], moduli["E_c_Pa"]
+        e_f = 4.0 * e_t * e_c / (math.sqrt(e_t) + math.sqrt(e_c)) ** 2
+        ax.plot(100 * xs, 1e3 * euler_bernoulli(xs, *args, e_f, i_area), "--", label="E_flexural")
+    ax.set_xlabel("distance from the clamp (cm)")
+    ax.set_ylabel("deflection w (mm, down)")
+    ax.invert_yaxis()
+    ax.legend()
+    ax.grid(True, alpha=0.3)
+    path = out_dir / "deflection.png"
+    fig.savefig(path, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return [path, *_history(res, out_dir)]
+
+
+def _history(res, out_dir: Path) -> list[Path]:
+    from .. import plot
+
+    t = np.asarray(res.series["time"])
+    return [
+        plot.plot_series(
+            t * 1e3,
+            {"kinetic energy": res.series["kinetic_energy"]},
+            "time (ms)",
+            "kinetic energy (J)",
+            out_dir / "relaxation.png",
+            logy=True,
+        )
+    ]

@@ -1,0 +1,223 @@
+"""Bonded Voronoi scenes (paper 002): Brazilian disc, constant-p biaxial, loading control,
+and ensembles under jax.vmap. Tiny specimens (40-50 cells) and fast loading keep it short."""
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxgran import ensemble as ens
+from jaxgran.analysis import brazilian_tensile_strength
+from jaxgran.scenes import bonded as bd
+from jaxgran.scenes import bonded_biaxial as bx
+from jaxgran.scenes import bonded_brazilian as bz
+from jaxgran.scenes import bonded_cantilever as bc
+from jaxgran.state import replace
+
+TINY_DISC = {
+    "n_cells": 50,
+    "strain_rate": 40.0,
+    "record_every": 25,
+    "records_per_segment": 8,
+    "realisations": 2,
+}
+
+
+def _single(setup, k, n_steps, cfg, control=None, state=None):
+    return ens.drive(
+        setup.states[k] if state is None else state,
+        setup.params,
+        setup.controls[k] if control is None else control,
+        setup.grid,
+        n_steps=n_steps,
+        record_every=cfg.record_every,
+        records_per_segment=cfg.records_per_segment,
+        progress=False,
+    )
+
+
+@pytest.fixture(scope="module")
+def brazil():
+    """Two discs (seeds 0, 1) padded to common capacities: both under vmap until both have
+    failed, then each alone for the same number of steps."""
+    cfg = dataclasses.replace(bz.Config(), **TINY_DISC)
+    setup = bz.build(cfg)
+    cap = setup.states[0].contacts.capacity
+    setup.states = [bd.with_pair_capacity(s, cap + cap % 2) for s in setup.states]  # even
+    traces = (ens.run_segments._cached._cache_size(), ens._run_single._cached._cache_size())
+    batch, _ = bz.simulate_test(cfg, setup=setup)
+    singles = [_single(setup, k, batch.steps, cfg) for k in range(2)]
+    new = (ens.run_segments._cached._cache_size(), ens._run_single._cached._cache_size())
+    # every segment of both paths, and both single realisations, share one compilation each
+    assert new[0] - traces[0] == 1 and new[1] - traces[1] == 1
+    return cfg, setup, batch, singles
+
+
+def test_brazilian_tiny_disc_splits_along_the_loading_diameter(brazil):
+    cfg, setup, batch, singles = brazil
+    assert batch.stopped_early and batch.size == 2
+    for k, run in enumerate(singles):
+        m = bz.measure(run, setup.gap0[k], cfg.diameter, setup.material)
+        force, gap = bz.platen_force(run.series)
+        strain = 1.0 - gap / setup.gap0[k]
+        peak = int(np.argmax(force))
+        # elastic rise: linear (R^2 of 10-70 % of F_max) after the platens have seated on the
+        # polygonal poles (which stiffens the very start); few bonds broken early (at the
+        # platens)
+        assert m["rising_branch_r2"] > 0.95
+        half = np.interp(0.5 * strain[peak], strain, force)
+        assert 0.3 < half / force[peak] < 0.7
+        n_half = run.series["n_broken"][np.searchsorted(strain, 0.5 * strain[peak])]
+        assert n_half <= 0.25 * run.series["n_broken"][-1]
+        # then a sudden drop (the run stops below drop_fraction x F_max)
+        assert force[-1] < cfg.drop_fraction * force[peak]
+        assert strain[-1] - strain[peak] < 0.3 * strain[peak]
+        # Eq. 16
+        assert m["tensile_strength_Pa"] > 0
+        assert m["tensile_strength_Pa"] == pytest.approx(
+            brazilian_tensile_strength(force[peak], cfg.diameter, cfg.thickness)
+        )
+        assert m["slope_S_Pa"] > 0
+        # the crack: broken bonds along the loading (vertical) diameter
+        assert m["n_broken"] >= 10
+        assert m["crack_angle_from_loading_axis_deg"] < 20.0
+        assert m["crack_elongation"] > 1.5
+        # a uniform cloud over the disc would have mean |x| = 4 R / (3 pi) = 0.21 D
+        assert m["broken_mean_distance_from_loading_axis_over_D"] < 0.15
+
+
+def test_ensemble_under_vmap_equals_sequential_runs(brazil):
+    _, _, batch, singles = brazil
+    for k, one in enumerate(singles):
+        many = batch.realisation(k)
+        np.testing.assert_allclose(
+            np.asarray(many.state.particles.pos),
+            np.asarray(one.state.particles.pos),
+            rtol=0,
+            atol=1e-10 * 0.05,
+        )
+        np.testing.assert_allclose(
+            np.asarray(many.state.particles.angle),
+            np.asarray(one.state.particles.angle),
+            atol=1e-10,
+        )
+        np.testing.assert_array_equal(
+            np.asarray(many.state.bonds.intact), np.asarray(one.state.bonds.intact)
+        )
+        bt_many, bt_one = (
+            np.asarray(many.state.bonds.break_time),
+            np.asarray(one.state.bonds.break_time),
+        )
+        np.testing.assert_array_equal(np.isfinite(bt_many), np.isfinite(bt_one))
+        fin = np.isfinite(bt_one)
+        np.testing.assert_allclose(bt_many[fin], bt_one[fin], rtol=1e-10)
+        for key in ("wall_force", "kinetic_energy", "n_broken", "time"):
+            ref = np.asarray(one.series[key], float)
+            np.testing.assert_allclose(
+                np.asarray(many.series[key], float), ref, rtol=0, atol=1e-10 * np.abs(ref).max()
+            )
+        assert int(one.series["n_broken"][-1]) > 0  # the comparison went through fracture
+
+
+def test_full_pair_list_is_grown_and_gives_the_same_run(brazil):
+    """Half the needed pair capacity: the host loop doubles it (back to the fixture's
+    capacity, so nothing recompiles but the start-up) and the run is the same."""
+    cfg, setup, _, _ = brazil
+    cap = setup.states[0].contacts.capacity
+    small = bd.with_pair_capacity(setup.states[0], cap // 2)
+    n = cfg.record_every * cfg.records_per_segment
+    grown = _single(setup, 0, n, cfg, state=small)
+    ample = _single(setup, 0, n, cfg)
+    assert any("pair capacity" in msg for msg in grown.regrows) and not ample.regrows
+    assert grown.state.contacts.capacity == cap
+    np.testing.assert_array_equal(
+        np.asarray(grown.state.particles.pos), np.asarray(ample.state.particles.pos)
+    )
+
+
+def test_stacking_needs_common_capacities(brazil):
+    cfg, setup, _, _ = brazil
+    spec = bd.disc_specimen(cfg.diameter, 30, 7, setup.material)
+    other = bd.assemble(spec, setup.material, [])
+    with pytest.raises(ValueError, match="Capacities"):
+        ens.stack([setup.states[0], other])
+
+
+def test_external_force_and_damping_of_the_control_are_exact(brazil):
+    """A body force ramped from zero moves a free disc rigidly exactly as Verlet with that
+    force would; a global damping c scales velocities by exp(-c dt) per step. Same shapes as
+    the Brazilian disc, so the compiled segment is reused."""
+    cfg, setup, _, _ = brazil
+    state = setup.states[0]
+    state = replace(state, walls=replace(state.walls, active=jnp.zeros(2, bool)))
+    mass = np.asarray(state.particles.mass)
+    act = np.asarray(state.particles.active)
+    g = np.array([3.0e5, -2.0e5])  # m/s^2
+    ramp = 2.0e-5  # s
+    control = bd.make_control(
+        state, external_force=mass[:, None] * g * act[:, None], ramp_time=ramp
+    )
+    n = cfg.record_every * cfg.records_per_segment
+    run = _single(setup, 0, n, cfg, control=control, state=state)
+    dt = float(setup.params.dt)
+    x, v = 0.0, 0.0  # leap-frog with a(t_n) = g min(t_n / ramp, 1), v at half steps
+    for k in range(n):
+        v += dt * min(k * dt / ramp, 1.0)
+        x += dt * v
+    disp = np.asarray(run.state.particles.pos)[act] - np.asarray(state.particles.pos)[act]
+    np.testing.assert_allclose(disp, np.broadcast_to(x * g, disp.shape), rtol=1e-9)
+
+    c = 2.0e4  # 1/s
+    v0 = np.where(act[:, None], np.array([0.1, 0.05]), 0.0)
+    moving = replace(state, particles=replace(state.particles, vel=jnp.asarray(v0)))
+    run = _single(setup, 0, n, cfg, control=bd.make_control(state, damping=c), state=moving)
+    vel = np.asarray(run.state.particles.vel)[act]
+    np.testing.assert_allclose(vel, v0[act] * math.exp(-c * dt * n), rtol=1e-9)
+
+
+def test_biaxial_holds_p_constant_while_shearing():
+    cfg = dataclasses.replace(
+        bx.Config(),
+        width=0.03,
+        height=0.06,
+        n_cells=40,
+        strain_rate=40.0,
+        max_strain=0.02,
+        record_every=25,
+        records_per_segment=8,
+    )
+    p = 300.0e6
+    shear, iso, setup, _ = bx.isotropic_then_shear(cfg, [0], (p,))
+    s_ax, s_lat, *_ = bx.stresses(iso.series, cfg.thickness)
+    assert abs(s_ax[-1] / p - 1.0) < cfg.iso_tolerance
+    assert abs(s_lat[-1] / p - 1.0) < cfg.iso_tolerance
+    m = bx.measure_shear(shear.realisation(0), p, cfg.thickness, cfg.residual_fraction)
+    assert m["p_max_relative_deviation"] < 0.02
+    assert m["p_mean_relative_deviation"] < 0.005
+    # a real shearing test: q grew well beyond p, bonds broke, s3 turned tensile (the wall
+    # bonds pull) and the axial walls moved as prescribed
+    assert m["q_peak_Pa"] > p
+    assert m["n_broken_final"] > 10
+    s_ax, s_lat, height, _ = bx.stresses(shear.series, cfg.thickness)
+    assert s_lat.min() < 0.0
+    e1 = 1.0 - height / height[0]
+    assert e1[-1] == pytest.approx(cfg.max_strain, rel=0.1)
+
+
+def test_euler_bernoulli_cantilever_formula():
+    f, a, e, i = 100.0, 0.2, 1.0e10, 1.0e-8
+    x = np.linspace(0.0, 0.3, 301)
+    w = bc.euler_bernoulli(x, f, a, e, i)
+    assert w[0] == 0.0
+    tip = f * a**3 / (3.0 * e * i)
+    assert np.interp(a, x, w) == pytest.approx(tip, rel=1e-12)
+    # straight beyond the load, with the slope F a^2 / (2 E I)
+    assert (w[-1] - np.interp(a, x, w)) / (x[-1] - a) == pytest.approx(
+        f * a**2 / (2 * e * i), rel=1e-9
+    )
+    # Eq. 29 with L = a: w'' = M / (E I) = F (a - x) / (E I)
+    h = x[1] - x[0]
+    curv = np.diff(w[:150], 2) / h**2
+    np.testing.assert_allclose(curv, f * (a - x[1:149]) / (e * i), rtol=1e-6)
