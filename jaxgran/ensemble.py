@@ -120,20 +120,11 @@ def _run_single(state, params, control, grid, n_records, record_every):
 
 
 def frame(state: SimState) -> dict[str, np.ndarray]:
-    """Host copy of a frame of a bonded run (stacked arrays keep their K axis)."""
-    p = state.particles
-    return {
-        "time": np.asarray(state.time),
-        "pos": np.asarray(p.pos),
-        "angle": np.asarray(p.angle),
-        "vel": np.asarray(p.vel),
-        "omega": np.asarray(p.omega),
-        "force": np.asarray(p.force),
-        "active": np.asarray(p.active),
-        "wall_point": np.asarray(state.walls.point),
-        "wall_force": np.asarray(state.walls.force),
-        "bond_intact": np.asarray(state.bonds.intact),
-    }
+    """Host copy of a frame of a bonded run (stacked arrays keep their K axis): the
+    simulator's frame plus the bond state."""
+    from .simulate import frame_of
+
+    return frame_of(state) | {"bond_intact": np.asarray(state.bonds.intact)}
 
 
 @dataclasses.dataclass
