@@ -241,20 +241,10 @@ class AveragedStressBreakage(DsmBreakage):
 
     def check(self, state: SimState) -> list[_Decision]:
         """The breakage decisions for ``state`` (no state change)."""
-        tab = self._table(state)
-        cand = np.flatnonzero(np.asarray(tab["flag"]))
-        if cand.size == 0:
+        found = self._candidates(state)
+        if found is None:
             return []
-        count = np.asarray(tab["count"])[cand]
-        if count.max() > self.max_contacts:
-            new = 1 << int(math.ceil(math.log2(int(count.max()))))
-            self._note(
-                f"contact list of {self.max_contacts} per particle exceeded "
-                f"({int(count.max())} needed); grown to {new}"
-            )
-            self.max_contacts = new
-            tab = self._table(state)
-        host = {k: np.asarray(v)[cand] for k, v in tab.items()}
+        cand, host = found
         out = []
         for row, slot in enumerate(cand.tolist()):
             self.n_checked += 1

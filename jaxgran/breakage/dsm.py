@@ -468,23 +468,32 @@ class DsmBreakage:
             chunk = slots[start : start + bs]
             self._operators(state, np.concatenate([chunk, np.full(bs - chunk.size, chunk[0])]))
 
-    def check(self, state: SimState) -> list[_Decision]:
-        """The breakage decisions for ``state`` (no state change)."""
+    def _candidates(self, state: SimState):
+        """Screened particle slots and their contact table on the host, growing the
+        per-particle contact list first if a candidate has more contacts than it holds.
+        Returns ``(slots, table)`` or ``None`` when nothing passes the screening."""
         tab = self._table(state)
         cand = np.flatnonzero(np.asarray(tab["flag"]))
         if cand.size == 0:
-            return []
+            return None
         count = np.asarray(tab["count"])[cand]
         if count.max() > self.max_contacts:
             new = 1 << int(math.ceil(math.log2(int(count.max()))))
             self._note(
-                f"DSM contact list of {self.max_contacts} per particle exceeded "
+                f"contact list of {self.max_contacts} per particle exceeded "
                 f"({int(count.max())} needed); grown to {new}"
             )
             self.max_contacts = new
             tab = self._table(state)
+        return cand, {k: np.asarray(v)[cand] for k, v in tab.items()}
+
+    def check(self, state: SimState) -> list[_Decision]:
+        """The breakage decisions for ``state`` (no state change)."""
+        found = self._candidates(state)
+        if found is None:
+            return []
+        cand, host = found
         self._fit_elements(state)
-        host = {k: np.asarray(v)[cand] for k, v in tab.items()}
         decisions = []
         for start in range(0, cand.size, self.batch_size):
             rows = np.arange(start, min(start + self.batch_size, cand.size))
