@@ -123,3 +123,26 @@ def dumps(summary: dict) -> str:
     """Compact human-readable summary for the terminal."""
     keep = {k: v for k, v in summary.items() if k not in ("config", "figures")}
     return json.dumps(keep, indent=2, default=float)
+
+
+def contact_params(cfg: Any, reference_mass: float, **extra):
+    """Contact parameters from a scene config with the fields ``normal_stiffness``,
+    ``tangential_stiffness``, ``friction``, ``restitution``, ``skin`` and ``thickness``: the
+    normal and tangential dashpots give the restitution ``cfg.restitution`` to a pair of
+    particles of mass ``reference_mass`` (kg). ``extra`` goes to ``make_params``."""
+    from ..contact import damping_from_restitution
+    from ..state import make_params
+
+    m_eff = reference_mass / 2
+    return make_params(
+        normal_stiffness=cfg.normal_stiffness,
+        tangential_stiffness=cfg.tangential_stiffness,
+        friction=cfg.friction,
+        normal_damping=damping_from_restitution(cfg.restitution, cfg.normal_stiffness, m_eff),
+        tangential_damping=damping_from_restitution(
+            cfg.restitution, cfg.tangential_stiffness, m_eff
+        ),
+        skin=cfg.skin,
+        thickness=cfg.thickness,
+        **extra,
+    )

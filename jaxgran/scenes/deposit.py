@@ -16,19 +16,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import geometry as geo
-from ..contact import damping_from_restitution
 from ..integrate import check_time_step, stable_time_step
 from ..partition import make_grid
 from ..simulate import simulate
 from ..state import (
     box_walls,
-    make_params,
     make_state,
     make_walls,
     particles_from_polygons,
     replace,
 )
-from .base import write_outputs
+from .base import contact_params, write_outputs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,17 +93,7 @@ def build(cfg: Config):
     cells = make_cells(cfg)
     parts = particles_from_polygons(cells, cfg.sphero_radius, cfg.areal_density)
     m_typ = float(np.median(np.asarray(parts.mass)))
-    params = make_params(
-        normal_stiffness=cfg.normal_stiffness,
-        tangential_stiffness=cfg.tangential_stiffness,
-        friction=cfg.friction,
-        normal_damping=damping_from_restitution(cfg.restitution, cfg.normal_stiffness, m_typ / 2),
-        tangential_damping=damping_from_restitution(
-            cfg.restitution, cfg.tangential_stiffness, m_typ / 2
-        ),
-        skin=cfg.skin,
-        thickness=cfg.thickness,
-    )
+    params = contact_params(cfg, m_typ)
     dt = cfg.dt or min(cfg.dt_max, stable_time_step(parts, params, cfg.dt_safety))
     params = replace(params, dt=jnp.asarray(dt))
     check_time_step(parts, params)

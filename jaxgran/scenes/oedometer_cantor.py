@@ -34,21 +34,19 @@ import numpy as np
 from .. import geometry as geo
 from ..breakage import metrics
 from ..breakage.averaged import make_breakage, method_name
-from ..contact import damping_from_restitution
 from ..integrate import check_time_step
 from ..partition import make_grid
 from ..simulate import frame_of, simulate
 from ..state import (
     WALL_VELOCITY,
     box_walls,
-    make_params,
     make_state,
     make_walls,
     particles_from_polygons,
     replace,
     wall,
 )
-from .base import write_outputs
+from .base import contact_params, write_outputs
 
 __all__ = ["Config", "QUICK", "build", "run", "simulate_test", "summarize"]
 
@@ -136,18 +134,7 @@ def build(cfg: Config):
     parts = particles_from_polygons(cores, cfg.sphero_radius, cfg.areal_density)
     m = np.asarray(parts.mass)
     m_mean = float(m.mean())
-    params = make_params(
-        normal_stiffness=cfg.normal_stiffness,
-        tangential_stiffness=cfg.tangential_stiffness,
-        friction=cfg.friction,
-        normal_damping=damping_from_restitution(cfg.restitution, cfg.normal_stiffness, m_mean / 2),
-        tangential_damping=damping_from_restitution(
-            cfg.restitution, cfg.tangential_stiffness, m_mean / 2
-        ),
-        skin=cfg.skin,
-        thickness=cfg.thickness,
-        poisson_ratio=cfg.poisson_ratio,
-    )
+    params = contact_params(cfg, m_mean, poisson_ratio=cfg.poisson_ratio)
     # the smallest kept fragment: a sliver has I / l^2 of about a quarter of its mass
     m_rot = 0.25 * cfg.min_fragment_fraction * m_mean
     dt = cfg.dt_safety * math.sqrt(2.0 * m_rot / cfg.normal_stiffness)

@@ -25,13 +25,11 @@ import numpy as np
 
 from .. import geometry as geo
 from ..breakage import metrics
-from ..contact import damping_from_restitution
 from ..integrate import check_time_step
 from ..partition import make_grid
 from ..state import (
     WALL_VELOCITY,
     box_walls,
-    make_params,
     make_state,
     make_walls,
     particles_from_polygons,
@@ -39,7 +37,7 @@ from ..state import (
     wall,
 )
 from . import oedometer_cantor as oc
-from .base import write_outputs
+from .base import contact_params, write_outputs
 
 __all__ = ["Config", "QUICK", "build", "run"]
 
@@ -118,18 +116,7 @@ def build(cfg: Config):
     """Initial state (cells in the air, bar parked above), parameters and grid."""
     parts = particles_from_polygons(cells(cfg), cfg.sphero_radius, cfg.areal_density)
     m_mean = float(np.asarray(parts.mass).mean())
-    params = make_params(
-        normal_stiffness=cfg.normal_stiffness,
-        tangential_stiffness=cfg.tangential_stiffness,
-        friction=cfg.friction,
-        normal_damping=damping_from_restitution(cfg.restitution, cfg.normal_stiffness, m_mean / 2),
-        tangential_damping=damping_from_restitution(
-            cfg.restitution, cfg.tangential_stiffness, m_mean / 2
-        ),
-        skin=cfg.skin,
-        thickness=cfg.thickness,
-        poisson_ratio=cfg.poisson_ratio,
-    )
+    params = contact_params(cfg, m_mean, poisson_ratio=cfg.poisson_ratio)
     m_rot = 0.25 * cfg.min_fragment_fraction * m_mean
     params = replace(
         params, dt=jnp.asarray(cfg.dt_safety * math.sqrt(2.0 * m_rot / cfg.normal_stiffness))
