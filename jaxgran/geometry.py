@@ -601,6 +601,29 @@ def clip_convex(poly: ArrayLike, clip: ArrayLike) -> np.ndarray:
     return _finish_clip(_clip_to_halfplanes(p, normals, h), max(_size(p), _size(c)))
 
 
+def clip_halfplanes(poly: ArrayLike, normals: ArrayLike, offsets: ArrayLike) -> np.ndarray:
+    """Part of a convex polygon inside the half-planes ``normals[k] . x <= offsets[k]``.
+
+    Args:
+        poly: convex CCW polygon ``[n, 2]`` (m).
+        normals: outward normals ``[k, 2]`` of the half-planes (any length > 0).
+        offsets: ``[k]`` (m times the normal's length).
+
+    Returns:
+        Convex CCW polygon ``[m, 2]`` (m), or ``[0, 2]`` when nothing of area is left.
+    """
+    p = _as_points(poly, "poly")
+    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
+    off = np.asarray(offsets, dtype=np.float64).reshape(-1)
+    if len(nrm) != len(off):
+        raise ValueError(f"{len(nrm)} normals but {len(off)} offsets")
+    if not len(nrm):
+        return p
+    if not (np.isfinite(nrm).all() and np.isfinite(off).all()):
+        raise ValueError("half-plane normals and offsets must be finite")
+    return _finish_clip(_clip_to_halfplanes(p, nrm, off), _size(p))
+
+
 def point_in_convex_polygon(
     points: ArrayLike, verts: ArrayLike, *, tol: float | None = None
 ) -> np.ndarray:

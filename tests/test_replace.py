@@ -186,7 +186,8 @@ def _max_force_on(state, params, slots):
     return float(np.max(np.where(act & hit[:, None, None], f, 0.0), initial=0.0))
 
 
-def test_fragments_start_without_overlap_and_without_force():
+@pytest.mark.parametrize("erosion", ["local", "uniform"])
+def test_fragments_start_without_overlap_and_without_force(erosion):
     overlap = 3e-5
     state, params, grid = _row_of_three(overlap)
     before = _max_force_on(state, params, [1])
@@ -194,8 +195,11 @@ def test_fragments_start_without_overlap_and_without_force():
     assert float(max_overlap(state)[1]) == pytest.approx(overlap, rel=1e-9)
     # a diagonal cut and a horizontal one: fragments touch both neighbours' faces
     lines = [[[-1, -1], [1, 1]], [[-1, 0.001], [1, 0.001]]]
-    state, ev = replace_particle(state, 1, _cut(state, 1, lines))
-    assert ev["erosion"] >= overlap
+    state, ev = replace_particle(state, 1, _cut(state, 1, lines), erosion=erosion)
+    if erosion == "uniform":
+        assert ev["erosion"] >= overlap
+    else:
+        assert ev["n_contact_clips"] == 2  # the two neighbours, nothing else
     state, err = prepare(state, params, grid)
     assert int(err) == 0
     frags = ev["fragment_slots"].tolist()
@@ -206,6 +210,27 @@ def test_fragments_start_without_overlap_and_without_force():
     state, _, err = run_segment(state, params, grid, 4, 50)
     assert int(err) == 0
     assert _max_force_on(state, params, frags + [0, 2]) < 1e-9 * before
+
+
+def test_local_erosion_removes_only_the_overlap_caps():
+    """The fragments' outline is the opening of the clipped pieces, so the parent's core loses
+    a layer delta only on the faces that neighbours penetrate (area of a convex K dilated by
+    R: |K| + R per(K) + pi R^2): local erosion takes 2 delta (A + 2 R) beyond what the cut's
+    own corner rounding takes (no overlap); uniform erosion shrinks the core all round."""
+    overlap = 3e-5
+    lines = [[[-1, -1], [1, 1]], [[-1, 0.001], [1, 0.001]]]
+    lost = {}
+    for mode in ("none", "local", "uniform"):
+        state, _, _ = _row_of_three(overlap)
+        kw = {"overlap": 0.0} if mode == "none" else {"erosion": mode}
+        _, ev = replace_particle(state, 1, _cut(state, 1, lines), clearance=0.0, **kw)
+        lost[mode] = ev["mass_lost"] / RHO  # m^2
+    d = overlap
+    assert lost["local"] - lost["none"] == pytest.approx(2 * d * (A + 2 * R), rel=0.01)
+    # uniform erosion also opens a gap 2 delta along both cuts (chords A + 2R and
+    # sqrt(2) A + 2R); O(delta^2) corner terms are left out, hence 2 %
+    cuts = 2 * d * ((A + 2 * R) + (math.sqrt(2) * A + 2 * R))
+    assert lost["uniform"] - lost["none"] == pytest.approx(4 * d * (A + 2 * R) + cuts, rel=0.02)
 
 
 def test_tangential_history_of_touched_slots_is_zeroed():

@@ -23,6 +23,18 @@ Geometry of a fragment (the erosion rule).
     * with ``delta = 0`` only the new corners made by the planes are rounded: a straight cut
       loses ``r^2 (tan(a/2) - a/2)`` per new corner of exterior angle ``a``.
 
+    That is ``erosion="uniform"``, the parent's largest overlap taken off all round. The
+    default ``erosion="local"`` takes material off only where a body overlaps the parent:
+    for every neighbour B that overlaps it now, the direction ``u`` of least penetration
+    (separating-axis test over the edge normals of both cores and the directions between
+    their vertices, which is exact for spheropolygons) defines B's supporting line
+    ``u . x = h_B(u) + r_B`` (``h_B`` the support function of B's core); every piece is
+    clipped to the far side of that line, and of every overlapping wall's line, before the
+    erosion by ``r + clearance``. Since B lies entirely on its side of its supporting line,
+    no fragment starts with an overlap, and what is lost is a cap of the overlap's depth
+    where each contact is instead of a strip all round (the mass loss falls by the ratio of
+    the contact widths to the perimeter; paper 000 reports 0.08 % in its oedometer).
+
     To make the erosion of a *polygonal* outline exact, :func:`dilated_outline` returns the
     polygon *circumscribed* to ``S`` (tangent to it on every flat edge and at ``n_arc`` points
     per turn on the corner arcs): eroding it by ``r`` gives back the core ``C`` exactly, so
@@ -66,6 +78,7 @@ __all__ = [
     "Replacement",
     "dilated_outline",
     "fragment_cores",
+    "contact_halfplanes",
     "max_overlap",
     "replace_particle",
     "replace_particles",
@@ -234,6 +247,76 @@ def max_overlap(state: SimState) -> Array:
     return jnp.where(p.active, jnp.maximum(out, jnp.maximum(ov_w, 0.0)), 0.0)
 
 
+def _penetration_axis(a: np.ndarray, ra: float, b: np.ndarray, rb: float):
+    """Direction ``u`` (unit, from B towards A) of least penetration of two convex
+    spheropolygons (cores ``a``, ``b`` ``[n, 2]`` m, radii m) and their signed gap along it
+    (m, < 0 when they overlap). Candidates: edge normals of both cores and the unit vectors
+    between their vertices, among which the separating axis of two convex spheropolygons
+    always is."""
+    ea = np.roll(a, -1, axis=0) - a
+    eb = np.roll(b, -1, axis=0) - b
+    cand = [np.stack([-ea[:, 1], ea[:, 0]], 1), np.stack([eb[:, 1], -eb[:, 0]], 1)]
+    cand.append((a[:, None, :] - b[None, :, :]).reshape(-1, 2))
+    u = np.concatenate(cand)
+    length = np.linalg.norm(u, axis=1)
+    u = u[length > 1e-300] / length[length > 1e-300, None]
+    gap = (a @ u.T).min(axis=0) - (b @ u.T).max(axis=0) - ra - rb
+    best = int(np.argmax(gap))
+    return u[best], float(gap[best])
+
+
+def contact_halfplanes(state: SimState, k: int, clearance: float = 0.0):
+    """Half-planes that keep fragments of particle ``k`` clear of every body overlapping it.
+
+    For each active particle B overlapping ``k`` now, with ``u`` its direction of least
+    penetration (from B towards ``k``), the fragments' dilated outline must satisfy
+    ``u . x >= h_B(u) + r_B + clearance``; for an overlapping wall (inward normal ``n``
+    through point ``p``), ``n . (x - p) >= clearance``.
+
+    Returns:
+        ``(normals [m, 2], offsets [m])`` in the convention ``normals . x <= offsets`` of
+        :func:`jaxgran.geometry.clip_halfplanes` (m).
+    """
+    p = state.particles
+    act = np.asarray(p.active)
+    pos = np.asarray(p.pos, dtype=np.float64)
+    angle = np.asarray(p.angle, dtype=np.float64)
+    verts = np.asarray(p.verts, dtype=np.float64)
+    nv = np.asarray(p.n_verts)
+    rad = np.asarray(p.radius, dtype=np.float64)
+    bound = np.asarray(p.bound_radius, dtype=np.float64)
+
+    def core(m: int) -> np.ndarray:
+        c, s = math.cos(angle[m]), math.sin(angle[m])
+        return verts[m, : nv[m]] @ np.array([[c, s], [-s, c]]) + pos[m]
+
+    a = core(k)
+    normals, offsets = [], []
+    near = act & (np.linalg.norm(pos - pos[k], axis=1) < bound + bound[k])
+    near[k] = False
+    for m in np.flatnonzero(near):
+        b = core(int(m))
+        u, gap = _penetration_axis(a, rad[k], b, rad[m])
+        if gap < 0.0:
+            normals.append(-u)
+            offsets.append(-((b @ u).max() + rad[m] + clearance))
+    w = state.walls
+    w_act = np.asarray(w.active)
+    for q in np.flatnonzero(w_act):
+        n = np.asarray(w.normal[q], dtype=np.float64)
+        pt = np.asarray(w.point[q], dtype=np.float64)
+        ext = np.asarray(w.extent[q], dtype=np.float64)
+        rel = a - pt
+        s_t = rel @ np.array([-n[1], n[0]])
+        inside = (s_t >= ext[0]) & (s_t <= ext[1])
+        if inside.any() and (rad[k] - (rel @ n)[inside].min()) > 0.0:
+            normals.append(-n)
+            offsets.append(-(n @ pt + clearance))
+    return np.reshape(np.array(normals, dtype=np.float64), (-1, 2)), np.array(
+        offsets, dtype=np.float64
+    )
+
+
 # ---------------------------------------------------------------------------- replacement
 
 
@@ -290,6 +373,7 @@ def replace_particles(
     clearance: float | None = None,
     mean_initial_mass: float | None = None,
     growth: float = _GROWTH,
+    erosion: str = "local",
 ) -> tuple[SimState, list[dict]]:
     """Replace several particles by their fragments at once (see :func:`replace_particle`).
 
@@ -299,8 +383,12 @@ def replace_particles(
         radius: sphero-radius of the fragments (m); default the parent's.
         areal_density: kg/m^2 of the fragments; default the parent's, ``mass / area``.
         min_area: fragments with a smaller area (m^2, after erosion) become fines.
-        overlap: ``[P]`` erosion beyond ``r`` (m) per slot; default :func:`max_overlap`.
+        overlap: ``[P]`` erosion beyond ``r`` (m) per slot, taken off all round; given, it
+            overrides ``erosion``.
         clearance: added to the erosion (m); default ``1e-9`` x the parent's bound radius.
+        erosion: ``"local"`` (default: clip the pieces only where a neighbour or wall
+            overlaps the parent, :func:`contact_halfplanes`) or ``"uniform"`` (erode by the
+            parent's largest overlap, :func:`max_overlap`, all round); module docstring.
         mean_initial_mass: mean particle mass at t = 0 (kg), for the breakage type (paper 000
             Table III); without it the type is not classified.
         growth: factor by which the particle capacity grows when free slots run out.
@@ -320,8 +408,11 @@ def replace_particles(
     for k in idx:
         if not 0 <= k < n_p or not arr["active"][k]:
             raise ValueError(f"slot {k} is not an active particle (capacity {n_p})")
+    if erosion not in ("local", "uniform"):
+        raise ValueError(f"erosion must be 'local' or 'uniform', got {erosion!r}")
+    local = overlap is None and erosion == "local"
     if overlap is None:
-        overlap = np.asarray(max_overlap(state))
+        overlap = np.zeros(n_p) if local else np.asarray(max_overlap(state))
     overlap = np.broadcast_to(np.asarray(overlap, dtype=float), (n_p,))
     time = float(state.time)
 
@@ -337,17 +428,24 @@ def replace_particles(
         clear = _CLEARANCE_REL * float(arr["bound_radius"][k]) if clearance is None else clearance
         delta = max(float(overlap[k]), 0.0) + float(clear)
         pieces = [np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in rep.pieces]
-        cores = fragment_cores(pieces, r, delta)
+        n_clips = 0
+        if local:
+            normals, offsets = contact_halfplanes(state, k)
+            n_clips = len(offsets)
+            clipped = [geo.clip_halfplanes(q, normals, offsets) for q in pieces]
+        else:
+            clipped = pieces
+        cores = [None if len(q) < 3 else fragment_cores([q], r, delta)[0] for q in clipped]
         frags: list[_Fragment] = []
         fines_area = 0.0
-        for piece, core in zip(pieces, cores, strict=True):
+        for piece, core in zip(clipped, cores, strict=True):
             area = None if core is None else _spheropolygon_area(core, r)
             if core is None or area < min_area:
-                fines_area += abs(geo.polygon_area(piece))
+                fines_area += abs(geo.polygon_area(piece)) if len(piece) >= 3 else 0.0
                 continue
             m, c, inertia = geo.spheropolygon_mass_properties(core, r, rho)
             frags.append(_Fragment(core - c, c, m, inertia))
-        plans.append((k, r, rho, delta, frags, fines_area, m_parent, rep))
+        plans.append((k, r, rho, delta, frags, fines_area, m_parent, rep, n_clips))
 
     # 2. capacity: free slots and vertex slots
     needed = sum(max(len(pl[4]) - 1, 0) for pl in plans)
@@ -373,7 +471,7 @@ def replace_particles(
     touched: list[int] = []
     events = []
     free_iter = iter(free)
-    for k, r, rho, delta, frags, fines_area, m_parent, rep in plans:
+    for k, r, rho, delta, frags, fines_area, m_parent, rep, n_clips in plans:
         pos_k = arr["pos"][k].copy()
         vel_k = arr["vel"][k].copy()
         om_k = float(arr["omega"][k])
@@ -431,6 +529,8 @@ def replace_particles(
             "eroded_mass": lost - fines_mass,
             "n_fines": len(rep.pieces) - len(frags),
             "erosion": delta,
+            "erosion_mode": "local" if local else "uniform",
+            "n_contact_clips": n_clips,
             "planes": planes.reshape(-1, 2, 2),
             "position": pos_k,
         }
@@ -521,6 +621,7 @@ def replace_particle(
     mean_initial_mass: float | None = None,
     planes: npt.ArrayLike | None = None,
     growth: float = _GROWTH,
+    erosion: str = "local",
 ) -> tuple[SimState, dict]:
     """Replace particle ``k`` by fragments (paper 000 §II.D; erosion rule in the module doc).
 
@@ -542,8 +643,8 @@ def replace_particle(
         radius: fragment sphero-radius (m); default the parent's.
         areal_density: kg/m^2; default the parent's (mass / area).
         min_area: smallest fragment area kept (m^2).
-        overlap: erosion beyond r (m); default the parent's largest current overlap with its
-            neighbours and walls (:func:`max_overlap`).
+        overlap: erosion beyond r (m), all round; given, it overrides ``erosion``.
+        erosion: ``"local"`` (default) or ``"uniform"``, see :func:`replace_particles`.
         clearance: extra erosion (m); default ``1e-9`` x the parent's bound radius.
         mean_initial_mass: mean initial particle mass (kg) for the breakage type.
         planes: ``[k, 2, 2]`` fracture planes (m), stored in the event.
@@ -571,5 +672,6 @@ def replace_particle(
         clearance=clearance,
         mean_initial_mass=mean_initial_mass,
         growth=growth,
+        erosion=erosion,
     )
     return state, events[0]
