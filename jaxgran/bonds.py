@@ -224,7 +224,12 @@ def bond_forces(p: Particles, bonds: Bonds, walls: Walls, dt: Array) -> tuple[Ar
     Returns:
         force ``[P, 2]`` (N), torque ``[P]`` (N m), new :class:`Bonds`. Jit-able,
         differentiable, finite (values and gradients) for padded bonds.
+
+    Another bond model in ``SimState.bonds`` (e.g. :class:`jaxgran.interface.InterfaceBonds`)
+    brings its own law as a ``forces(p, walls, dt)`` method, called here instead.
     """
+    if not isinstance(bonds, Bonds):
+        return bonds.forces(p, walls, dt)
     n_p = p.pos.shape[0]
     time = bonds.time + dt
     k = bond_kinematics(p, bonds)

@@ -11,12 +11,36 @@ with the states. The same loop runs a single realisation without ``vmap``
 (``batched=False``), so one code path serves both and K = 2 under ``vmap`` reproduces two
 single runs to round-off.
 
-Note on cost: ``vmap`` turns the pair-list rebuild's ``lax.cond`` (inside
-:func:`jaxgran.integrate.step`) into a ``select``, so a batched segment rebuilds the pair
-list every step. Bonded solids hardly move, so single runs rebuild rarely, and on a 2-core
-CPU the batch runs at 0.5-0.6x the realisation-steps per second of sequential runs
-(``benchmarks/bench_bonded.py``, 200-cell discs, K = 1-32). Passing the rebuild decision
-into the step from outside the vmap (``any`` over the batch) would keep the cond a cond.
+**One rebuild decision per batch.** Under ``vmap`` a ``lax.cond`` whose predicate is
+batched becomes a ``select`` that evaluates both branches, so a naively vmapped step would
+rebuild the pair list at every step. :func:`batched_step` instead vmaps the loading control,
+predicts every realisation's drifted positions (the kick and drift of
+:func:`jaxgran.integrate.step`), takes ``any`` over the batch of
+:func:`jaxgran.partition.needs_rebuild`, and passes that one unbatched flag to
+:func:`jaxgran.integrate.step` (its ``rebuild`` argument), so the cond stays a branch: the
+whole batch rebuilds when any member needs it, which changes the others by round-off only
+(a rebuild carries the spring history over).
+
+**Sharding over devices.** :func:`ensemble_mesh` makes a one-axis
+:class:`jax.sharding.Mesh` (axis ``"realisation"``) over all devices and :func:`shard`
+places a stacked pytree with its leading axis K split over it
+(:class:`jax.sharding.NamedSharding` with ``PartitionSpec("realisation")``; K must be a
+multiple of the device count); shared parameters are replicated (:func:`replicate`). The
+jitted segment then runs each device's realisations where they live; only the batch-wide
+rebuild flag (one boolean per step) crosses devices. :func:`drive` does this when given
+``mesh``. On a CPU the same code is exercised with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` set before JAX starts.
+
+**Several hosts.** Call ``jax.distributed.initialize(coordinator_address, num_processes,
+process_id)`` in every process before anything else touches JAX (on SLURM / TPU pods the
+arguments are found automatically); ``jax.devices()`` then lists the devices of all hosts
+and ``ensemble_mesh()`` spans them. Each process builds only its own share of the
+realisations (e.g. seeds ``process_index() * K_local + k``) and the global stacked arrays
+are formed with ``jax.make_array_from_process_local_data(NamedSharding(mesh,
+PartitionSpec("realisation")), local_stack)``; host-side reads of batched results (error
+bits, records) go through :func:`to_host`, which gathers over processes
+(``jax.experimental.multihost_utils.process_allgather``) when an array is not fully
+addressable. Every process runs the same host loop, so all take the same decisions.
 """
 
 from __future__ import annotations
@@ -30,11 +54,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import Array
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .analysis import summary_stats
-from .integrate import initial_forces
-from .scenes.bonded import Control, segment
-from .simulate import RunResult, SimulationError, grow_pairs
+from .integrate import initial_forces, step
+from .partition import needs_rebuild
+from .scenes.bonded import Control, apply_control, n_broken, segment
+from .simulate import Record, RunResult, SimulationError, grow_pairs, record
 from .state import (
     ERR_CELL_OVERFLOW,
     ERR_LEFT_DOMAIN,
@@ -80,6 +107,82 @@ def n_realisations(tree) -> int:
 # ------------------------------------------------------------------------------ jitted parts
 
 
+def drifted_positions(state: SimState, params: Params) -> Array:
+    """Particle positions after the coming step's half kick and drift ``[P, 2]`` (m), the
+    positions at which :func:`jaxgran.integrate.step` decides whether to rebuild."""
+    p = state.particles
+    dt = params.dt
+    free = p.active & ~p.fixed
+    inv_m = jnp.where(free, 1.0 / p.mass, 0.0)
+    vel = p.vel + 0.5 * dt * p.force * inv_m[:, None]
+    return jnp.where(p.active[:, None], p.pos + dt * vel, p.pos)
+
+
+def _needs_rebuild(state: SimState, params: Params) -> Array:
+    p = replace(state.particles, pos=drifted_positions(state, params))
+    return needs_rebuild(p, state.contacts, params.skin)
+
+
+def batched_step(
+    states: SimState,
+    params: Params,
+    controls: Control,
+    grid: Grid,
+    params_batched: bool = False,
+) -> tuple[SimState, Array]:
+    """One controlled step (:func:`jaxgran.scenes.bonded.apply_control`, then
+    :func:`jaxgran.integrate.step`) of K stacked realisations, with one pair-list rebuild
+    decision for the whole batch (``any`` over K; see the module docstring). Returns the
+    stacked states and the error bits ``[K]``. Not jitted; differentiable."""
+    pax = 0 if params_batched else None
+    states = jax.vmap(apply_control, in_axes=(0, pax, 0))(states, params, controls)
+    rebuild = jnp.any(jax.vmap(_needs_rebuild, in_axes=(0, pax))(states, params))
+    one = lambda s, p: step(s, p, grid, rebuild)
+    return jax.vmap(one, in_axes=(0, pax))(states, params)
+
+
+def batched_segment(
+    states: SimState,
+    params: Params,
+    controls: Control,
+    grid: Grid,
+    n_records: int,
+    record_every: int,
+    params_batched: bool = False,
+    remat: bool = False,
+) -> tuple[SimState, Record, dict[str, Array], Array]:
+    """:func:`jaxgran.scenes.bonded.segment` for K stacked realisations, stepping with
+    :func:`batched_step`. Returns the stacked states, records and extra series with the
+    record axis first (``[n_records, K, ...]``) and the error bits ``[K]``. Not jitted.
+    With ``remat`` every record interval is a :func:`jax.checkpoint` (reverse mode keeps
+    one state per record and recomputes the ``record_every`` steps; no effect on a forward
+    run)."""
+
+    def inner(carry, _):
+        s, err, wf = carry
+        s, e = batched_step(s, params, controls, grid, params_batched)
+        return (s, err | e, wf + s.walls.force), None
+
+    def outer(carry, _):
+        s, err = carry
+        wf0 = jnp.zeros_like(s.walls.force)
+        (s, err, wf), _ = jax.lax.scan(inner, (s, err, wf0), None, length=record_every)
+        rec = jax.vmap(record)(s, wf / record_every)
+        extra = {
+            "n_broken": jax.vmap(n_broken)(s),
+            "gauge_position": jnp.einsum("kgp,kpd->kgd", controls.gauges, s.particles.pos),
+        }
+        return (s, err), (rec, extra)
+
+    if remat:
+        outer = jax.checkpoint(outer)
+    k = states.time.shape[0]
+    (states, err), (recs, extra) = jax.lax.scan(
+        outer, (states, jnp.zeros((k,), jnp.int32)), None, length=n_records
+    )
+    return states, recs, extra, err
+
+
 @eqx.filter_jit
 def run_segments(
     states: SimState,
@@ -91,13 +194,74 @@ def run_segments(
     params_batched: bool = False,
 ):
     """:func:`jaxgran.scenes.bonded.segment` over the leading axis K of ``states`` and
-    ``controls`` (and of ``params`` when ``params_batched``). Returns stacked states,
-    records ``[K, n_records, ...]``, extra series ``[K, n_records, ...]``, errors ``[K]``."""
+    ``controls`` (and of ``params`` when ``params_batched``), with one rebuild decision per
+    step for the batch (:func:`batched_segment`). Returns stacked states, records
+    ``[K, n_records, ...]``, extra series ``[K, n_records, ...]``, errors ``[K]``. Sharded
+    inputs (:func:`shard`) keep their sharding."""
+    out = batched_segment(states, params, controls, grid, n_records, record_every, params_batched)
+    new, recs, extra, err = out
+    k_first = lambda t: jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), t)
+    return new, k_first(recs), k_first(extra), err
+
+
+@eqx.filter_jit
+def run_segments_naive(
+    states: SimState,
+    params: Params,
+    controls: Control,
+    grid: Grid,
+    n_records: int,
+    record_every: int,
+    params_batched: bool = False,
+):
+    """``vmap`` of the single-realisation segment, each member deciding its own rebuild
+    (so every step rebuilds under ``vmap``); kept for the benchmark's comparison."""
 
     def one(s, p, c):
         return segment(s, p, c, grid, n_records, record_every)
 
     return jax.vmap(one, in_axes=(0, 0 if params_batched else None, 0))(states, params, controls)
+
+
+# ------------------------------------------------------------------------------ sharding
+
+ENSEMBLE_AXIS = "realisation"
+
+
+def ensemble_mesh(devices=None) -> Mesh:
+    """A one-axis mesh (axis ``"realisation"``) over ``devices`` (default: all devices of
+    all processes, ``jax.devices()``)."""
+    devs = np.asarray(jax.devices() if devices is None else list(devices))
+    return Mesh(devs.reshape(-1), (ENSEMBLE_AXIS,))
+
+
+def shard(tree, mesh: Mesh):
+    """Place a stacked pytree (leading axis K on every leaf) with K split over the mesh's
+    ensemble axis. K must be a multiple of the number of devices of the mesh."""
+    n_dev = mesh.shape[ENSEMBLE_AXIS]
+    k = n_realisations(tree)
+    if k % n_dev:
+        raise ValueError(
+            f"{k} realisations cannot be split evenly over {n_dev} devices; use a multiple of "
+            f"{n_dev} realisations (e.g. {n_dev * -(-k // n_dev)}) or a mesh of fewer devices"
+        )
+    spec = NamedSharding(mesh, PartitionSpec(ENSEMBLE_AXIS))
+    return jax.tree.map(lambda x: jax.device_put(x, spec), tree)
+
+
+def replicate(tree, mesh: Mesh):
+    """Place a pytree shared by all realisations (e.g. :class:`Params`) on every device."""
+    spec = NamedSharding(mesh, PartitionSpec())
+    return jax.tree.map(lambda x: jax.device_put(x, spec), tree)
+
+
+def to_host(x) -> np.ndarray:
+    """Host copy of a (possibly sharded, possibly multi-host) array."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
 
 
 @eqx.filter_jit
@@ -221,6 +385,7 @@ def drive(
     progress: bool = True,
     desc: str = "bonded",
     max_regrows: int = 8,
+    mesh: Mesh | None = None,
 ) -> EnsembleResult:
     """Run a bonded test (one realisation, or K stacked ones with ``batched``) for up to
     ``n_steps`` steps in segments of ``record_every x records_per_segment`` steps.
@@ -228,9 +393,14 @@ def drive(
     ``callback(state, records) -> (state, stop)`` runs on the host after each segment;
     ``records`` holds the Record fields, ``n_broken`` and ``gauge_position``
     (``[n_records, ...]`` or ``[n_records, K, ...]``). A stop ends the run for all
-    realisations.
+    realisations. With ``mesh`` (:func:`ensemble_mesh`) a batched run is sharded over the
+    mesh's devices along K (:func:`shard`); the result is the same to round-off.
     """
     from tqdm.auto import tqdm
+
+    if mesh is not None and batched:
+        state, control = shard(state, mesh), shard(control, mesh)
+        params = shard(params, mesh) if params_batched else replicate(params, mesh)
 
     t0 = _time.perf_counter()
     regrows: list[str] = []
@@ -245,12 +415,14 @@ def drive(
     tries = 0
     while True:
         ready, err = prep(state, grid)
-        err_all = int(np.bitwise_or.reduce(np.atleast_1d(np.asarray(err))))
+        err_all = int(np.bitwise_or.reduce(np.atleast_1d(to_host(err))))
         if err_all & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW) and tries < max_regrows:
             state, grid = _grow(state, grid, err_all, regrows, batched)
+            if mesh is not None and batched:
+                state = shard(state, mesh)
             tries += 1
             continue
-        _fatal(np.atleast_1d(np.asarray(err)))
+        _fatal(np.atleast_1d(to_host(err)))
         break
     state = ready
     frames = [frame(state)]
@@ -274,19 +446,21 @@ def drive(
             else:
                 out = _run_single(start, params, control, grid, records_per_segment, record_every)
             new, recs, extra, err = out
-            err = np.atleast_1d(np.asarray(err))
+            err = np.atleast_1d(to_host(err))
             err_all = int(np.bitwise_or.reduce(err))
             if err_all & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
                 if tries >= max_regrows:
                     raise SimulationError(f"capacity still exceeded after {tries} regrowths")
                 start, grid = _grow(start, grid, err_all, regrows, batched)
+                if mesh is not None and batched:
+                    start = shard(start, mesh)
                 tries += 1
                 continue
             break
         _fatal(err)
         state = new
-        rec = {f.name: np.asarray(getattr(recs, f.name)) for f in dataclasses.fields(recs)}
-        rec.update({key: np.asarray(v) for key, v in extra.items()})
+        rec = {f.name: to_host(getattr(recs, f.name)) for f in dataclasses.fields(recs)}
+        rec.update({key: to_host(v) for key, v in extra.items()})
         if batched:  # [K, R, ...] -> [R, K, ...] (record axis first, as in simulate)
             rec = {key: np.swapaxes(v, 0, 1) for key, v in rec.items()}
         for key, val in rec.items():

@@ -96,8 +96,16 @@ def servo_gain_for(length: float, thickness: float, stiffness: float, response_t
     return length * thickness / (stiffness * response_time)
 
 
-def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
-    """Advance one time step. Returns the new state and the error bits of this step."""
+def step(
+    state: SimState, params: Params, grid: Grid, rebuild: Array | None = None
+) -> tuple[SimState, Array]:
+    """Advance one time step. Returns the new state and the error bits of this step.
+
+    ``rebuild`` (scalar bool, optional) overrides the pair-list rebuild decision (by default
+    :func:`jaxgran.partition.needs_rebuild` after the drift). Under ``vmap`` pass one flag
+    for the whole batch (``any`` over the realisations, :mod:`jaxgran.ensemble`): an
+    unbatched predicate keeps the ``lax.cond`` a branch instead of a ``select`` that would
+    rebuild every step. Rebuilding when not needed changes nothing but round-off."""
     p = state.particles
     dt = params.dt
     free = p.active & ~p.fixed
@@ -120,8 +128,10 @@ def step(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
     wvel = wall_velocity(walls, params.thickness)
     walls = replace(walls, point=walls.point + dt * wvel, vel=wvel)
 
+    if rebuild is None:
+        rebuild = needs_rebuild(p, state.contacts, params.skin)
     contacts, build_err = jax.lax.cond(
-        needs_rebuild(p, state.contacts, params.skin),
+        rebuild,
         lambda c: build_pairs(p, c, params.skin, grid),
         lambda c: (c, jnp.zeros((), jnp.int32)),
         state.contacts,

@@ -139,6 +139,7 @@ class RunResult:
     wall_time_s: float
     regrows: list[str]
     stopped_early: bool = False
+    params: Params | None = None
 
 
 def _fatal(err: int, state: SimState) -> None:
@@ -209,7 +210,7 @@ def simulate(
     record_every: int = 100,
     records_per_segment: int = 10,
     frame_every: int = 1,
-    callback: Callable[[SimState, dict[str, np.ndarray]], tuple[SimState, bool]] | None = None,
+    callback: Callable[[SimState, dict[str, np.ndarray]], tuple] | None = None,
     progress: bool = True,
     max_regrows: int = 8,
     prepared: bool = False,
@@ -222,9 +223,12 @@ def simulate(
         records_per_segment: records per compiled segment (segment length =
             ``record_every * records_per_segment`` steps).
         frame_every: keep a frame every this many segments (and always the last).
-        callback: ``callback(state, last_records) -> (state, stop)`` run on the host after each
-            segment (breakage, stage changes, stopping criteria). It may change values but not
-            capacities (or it must also rebuild contacts).
+        callback: ``callback(state, last_records) -> (state, stop)`` or ``(state, stop,
+            params)`` run on the host after each segment (breakage, stage changes, stopping
+            criteria). It may change values but not capacities (or it must also rebuild
+            contacts); returned ``params`` (e.g. a smaller ``dt`` once fragments appear) are
+            used from the next segment on, without recompiling. ``RunResult.params`` holds
+            the last ones.
         prepared: the state already carries a pair list and forces (skip :func:`prepare`).
     """
     from tqdm.auto import tqdm
@@ -267,7 +271,11 @@ def simulate(
         if (k + 1) % frame_every == 0 or k == n_seg - 1:
             frames.append(frame_of(state, params))
         if callback is not None:
-            state, stop = callback(state, rec)
+            out = callback(state, rec)
+            if len(out) == 3:
+                state, stop, params = out
+            else:
+                state, stop = out
             if stop:
                 stopped = True
                 if (k + 1) % frame_every != 0:
@@ -285,6 +293,7 @@ def simulate(
         wall_time_s=_time.perf_counter() - t0,
         regrows=regrows,
         stopped_early=stopped,
+        params=params,
     )
 
 
