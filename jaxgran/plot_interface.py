@@ -1,0 +1,165 @@
+"""Figures of the interface-bond scenes (paper 003): loading curves, cracks coloured by
+failure mode, Mohr circles with the fitted envelopes, stress along the loading axis, the
+velocity field at breakage and force chains (PNG, Agg backend; lengths in mm, stresses in
+MPa). Like :mod:`jaxgran.plot`, the only other module that imports matplotlib."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+
+from .io import world_vertices_np  # noqa: E402
+from .plot import draw_particles  # noqa: E402
+
+_DPI = 150
+MODE_COLOURS = {1: ("tension", "#e6b800"), 2: ("shear", "#d62728"), 3: ("compression", "#1f77b4")}
+
+
+def _save(fig, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=_DPI, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_curve(curves: dict, xlabel: str, ylabel: str, path: Path, marks=None) -> Path:
+    """Curves ``{label: (x, y)}`` on one axes; ``marks`` optional ``{label: (x, y)}`` points."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, (x, y) in curves.items():
+        ax.plot(x, y, lw=1.2, label=label)
+    for label, (x, y) in (marks or {}).items():
+        ax.plot(x, y, "o", ms=5, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def _particles(ax, state, colour_values=None, walls=True):
+    p = state.particles
+    vw = world_vertices_np(p.verts, p.n_verts, p.pos, p.angle)
+    w = state.walls
+    wd = {
+        "point": np.asarray(w.point),
+        "normal": np.asarray(w.normal),
+        "extent": np.asarray(w.extent),
+        "active": np.asarray(w.active),
+    }
+    draw_particles(
+        ax,
+        vw,
+        np.asarray(p.n_verts),
+        np.asarray(p.radius),
+        np.asarray(p.active),
+        walls=wd if walls else None,
+        length_unit="mm",
+    )
+
+
+def plot_cracks(state, elements: dict, path: Path, stages=None) -> Path:
+    """Failed elements coloured by mode (tension yellow, shear red, compression blue) over
+    the specimen; ``stages`` ``[(title, time)]`` draws one panel per time (elements failed by
+    then), at the final positions."""
+    stages = stages or [("final", np.inf)]
+    fig, axes = plt.subplots(1, len(stages), figsize=(4.5 * len(stages), 4.8), squeeze=False)
+    for ax, (title, t) in zip(axes[0], stages, strict=True):
+        _particles(ax, state)
+        done = elements["time"] <= t
+        for code, (name, colour) in MODE_COLOURS.items():
+            sel = done & (elements["mode"] == code)
+            if sel.any():
+                x = elements["pos"][sel] * 1e3
+                ax.plot(x[:, 0], x[:, 1], "s", ms=3, color=colour, label=f"{name} ({sel.sum()})")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    return _save(fig, path)
+
+
+def plot_mohr(sigma_1, sigma_3, fits: dict, path: Path, title: str = "") -> Path:
+    """Peak Mohr circles (compression positive, MPa) with the fitted linear and parabolic
+    envelopes (:func:`jaxgran.scenes.interface.mohr_envelope_fits`)."""
+    s1, s3 = np.asarray(sigma_1, float) / 1e6, np.asarray(sigma_3, float) / 1e6
+    fig, ax = plt.subplots(figsize=(7, 4))
+    a = np.linspace(0, np.pi, 100)
+    for x1, x3 in zip(s1, s3, strict=True):
+        c, r = 0.5 * (x1 + x3), 0.5 * abs(x1 - x3)
+        ax.plot(c + r * np.cos(a), r * np.sin(a), "k-", lw=0.8)
+    lo = min(float(s3.min()), -0.1 * float(s1.max()))
+    s = np.linspace(lo, float(s1.max()), 200)
+    if "linear_cohesion_Pa" in fits:
+        c = fits["linear_cohesion_Pa"] / 1e6
+        t = np.tan(np.radians(fits["linear_friction_angle_deg"]))
+        ax.plot(s, c + s * t, "b--", label=f"linear, R2 = {fits['linear_r2']:.4f}")
+    if "parabola_cohesion_Pa" in fits:
+        c = fits["parabola_cohesion_Pa"] / 1e6
+        sb = fits["parabola_tensile_strength_Pa"] / 1e6
+        ok = s > -sb
+        ax.plot(
+            s[ok],
+            c * np.sqrt(1 + s[ok] / sb),
+            "r-",
+            label=f"parabola, R2 = {fits['parabola_r2']:.4f}",
+        )
+    ax.set_xlabel("normal stress (MPa, compression positive)")
+    ax.set_ylabel("shear stress (MPa)")
+    ax.set_aspect("equal")
+    ax.set_ylim(bottom=0)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_axis_stress(y, measured, closed_form_y, closed_form, path: Path, title: str = "") -> Path:
+    """Horizontal stress along the loading axis (MPa, tension positive) from the measurement
+    circles against the closed-form disc solution; ``y`` in m."""
+    fig, ax = plt.subplots(figsize=(4.5, 5))
+    ax.plot(
+        np.asarray(closed_form) / 1e6, np.asarray(closed_form_y) * 1e3, "k-", label="closed form"
+    )
+    ax.plot(np.asarray(measured) / 1e6, np.asarray(y) * 1e3, "o", label="measurement circles")
+    ax.axvline(0, color="0.6", lw=0.8)
+    ax.set_xlabel("sigma_xx (MPa, tension positive)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_velocity(state, pos, vel, path: Path, title: str = "") -> Path:
+    """Particle velocities (arrows) at the moment of breakage."""
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    _particles(ax, state, walls=False)
+    pos, vel = np.asarray(pos) * 1e3, np.asarray(vel)
+    ax.quiver(pos[:, 0], pos[:, 1], vel[:, 0], vel[:, 1], color="#1f3b73", width=0.004)
+    ax.set_title(title, fontsize=9)
+    return _save(fig, path)
+
+
+def plot_force_chains(state, x_i, x_j, force, path: Path, title: str = "") -> Path:
+    """Interface normal forces as segments between particle centres: compression blue and
+    tension red, line width proportional to |F| (scaled separately)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    force = np.asarray(force, float)
+    seg = np.stack([np.asarray(x_i), np.asarray(x_j)], axis=1) * 1e3
+    for ax, sel, colour, name in (
+        (axes[0], force < 0, "#1f4fbf", "compression"),
+        (axes[1], force > 0, "#d62728", "tension"),
+    ):
+        _particles(ax, state, walls=False)
+        f = np.abs(force[sel])
+        if f.size:
+            lw = 0.3 + 4.0 * f / f.max()
+            ax.add_collection(LineCollection(seg[sel], colors=colour, linewidths=lw))
+        ax.set_title(f"{name} chains {title}", fontsize=9)
+    return _save(fig, path)

@@ -1,0 +1,260 @@
+"""Biaxial compression at constant confinement, and the Mohr strength envelope of the
+interface bond vs the parallel bond (paper 003 §3, Fig. 3-4, in 2D).
+
+A rectangle ``width x height`` of bonded discs or Voronoi cells (the gypsum-like material of
+:mod:`jaxgran.scenes.interface`, plane stress) sits in a box of four walls (bottom, left,
+right, top). For every confinement ``sigma3`` in ``confinements`` (default 2, 5, 10, 20 and
+40 MPa, paper 003's values): all four walls servo to sigma3 (isotropic stage), then the axial
+walls close at ``strain_rate`` (strain control) while the lateral servo walls hold sigma3.
+Stresses are compression positive, each the mean of its two walls' ``-F . n / (l T)`` with l
+the current specimen size. Reported per confinement: the peak axial stress s1, the lateral
+stress at the peak, and the post-peak ratio (mean stress over the last 20 % of the strain
+over the peak: near 1 is a plateau, low is brittle).
+
+With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
+of the same specimen add their Mohr circles, and the peak circles are fitted with the linear
+Mohr-Coulomb line and the quadratic parabola
+(:func:`jaxgran.scenes.interface.mohr_envelope_fits`): R^2 of each, for ``--set bond=...``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import interface as itf
+from ..integrate import servo_gain_for
+from ..state import WALL_SERVO, WALL_VELOCITY, box_walls, replace
+from . import bonded as bd
+from . import interface as si
+from .base import write_outputs
+
+SCENE = "interface-compression"
+
+
+@dataclasses.dataclass(frozen=True)
+class Config(si.Common):
+    width: float = 0.025  # m
+    height: float = 0.05  # m
+    confinements: tuple = (2.0e6, 5.0e6, 10.0e6, 20.0e6, 40.0e6)  # Pa, sigma3
+    strain_rate: float = 2.0  # 1/s
+    max_strain: float = 0.03
+    drop_fraction: float = 0.7  # stop below this x the peak deviator (after the peak)
+    iso_tolerance: float = 0.02  # isotropic stage ends when every wall is this close
+    iso_max_time: float = 2.0e-3  # s
+    servo_response: float = 3.0  # servo time constant in wave transits across the block
+    with_tension: bool = True
+    with_uniaxial: bool = True
+
+
+QUICK = {
+    "width": 0.015,
+    "height": 0.03,
+    "confinements": (5.0e6, 20.0e6),
+    "record_every": 25,
+    "records_per_segment": 8,
+    "with_tension": False,
+    "with_uniaxial": False,
+}
+
+
+def _walls(spec: si.Specimen, mat: si.Material, cfg: Config, sigma3: float) -> list[dict]:
+    x0, x1, y0, y1 = si.extent(spec)
+    walls = box_walls((x0, y0), (x1, y1))
+    e = 0.5 * mat.modulus  # order of the block's modulus (Pa)
+    rho = mat.density * cfg.solid_fraction
+    tau = cfg.servo_response * max(cfg.width, cfg.height) / math.sqrt(e / rho)
+    for k, d in enumerate(walls):
+        span = (y1 - y0) if k in (bd.BOTTOM, bd.TOP) else (x1 - x0)
+        gain = servo_gain_for(
+            d["length"], mat.thickness, e * mat.thickness * d["length"] / span, tau
+        )
+        d.update(
+            mode=WALL_SERVO,
+            target_stress=float(sigma3),
+            servo_gain=gain,
+            max_speed=2.0 * cfg.strain_rate * cfg.height,
+        )
+    return walls
+
+
+def build(cfg: Config, sigma3: float, spec: si.Specimen | None = None) -> si.Setup:
+    mat = si.material_from(cfg)
+    region = ("rect", (0.0, 0.0), (cfg.width, cfg.height))
+    spec = spec or si.make_specimen(cfg, region, mat)
+    setup = si.prepare(spec, mat, _walls(spec, mat, cfg, sigma3), cfg, margin=0.5 * cfg.height)
+    setup.control = bd.make_control(setup.state, box=True)
+    return setup
+
+
+def box_stress(series: dict, thickness: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Axial and lateral stress (Pa, compression positive) and height (m) per record."""
+    f = np.asarray(series["wall_force"], float)
+    pts = np.asarray(series["wall_point"], float)
+    nrm = np.array([[0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, -1.0]])
+    fn = -np.einsum("rwk,wk->rw", f, nrm)
+    width = pts[:, bd.RIGHT, 0] - pts[:, bd.LEFT, 0]
+    height = pts[:, bd.TOP, 1] - pts[:, bd.BOTTOM, 1]
+    s_ax = 0.5 * (fn[:, bd.BOTTOM] + fn[:, bd.TOP]) / (width * thickness)
+    s_lat = 0.5 * (fn[:, bd.LEFT] + fn[:, bd.RIGHT]) / (height * thickness)
+    return s_ax, s_lat, height
+
+
+def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = False) -> dict:
+    """Isotropic stage to sigma3, then strain-controlled axial loading; returns the series
+    (both stages), the final state, the setup and the record index where shearing began."""
+    setup = build(cfg, sigma3, spec)
+    T = setup.material.thickness
+
+    def iso_done(state, rec):
+        s_ax, s_lat, _ = box_stress(rec, T)
+        ok = abs(s_ax[-1] - sigma3) < cfg.iso_tolerance * sigma3
+        return state, bool(ok and abs(s_lat[-1] - sigma3) < cfg.iso_tolerance * sigma3)
+
+    dt = float(setup.params.dt)
+    iso = si.drive(setup, int(math.ceil(cfg.iso_max_time / dt)), cfg, iso_done, progress=progress)
+    state = iso.state
+    v = 0.5 * cfg.strain_rate * cfg.height
+    w = state.walls
+    mode = jnp.asarray([WALL_VELOCITY, WALL_SERVO, WALL_SERVO, WALL_VELOCITY], jnp.int32)
+    vel = jnp.asarray([[0.0, v], [0.0, 0.0], [0.0, 0.0], [0.0, -v]], w.vel.dtype)
+    setup.state = replace(state, walls=replace(w, mode=mode, vel=vel))
+    h0 = float(w.point[bd.TOP, 1] - w.point[bd.BOTTOM, 1])
+
+    def shear_stop(state, rec):
+        s_ax, s_lat, h = box_stress(rec, T)
+        q = s_ax - s_lat
+        shear_stop.best = max(shear_stop.best, float(q.max()))
+        strain = 1.0 - h[-1] / h0
+        # a drop counts only once elements have failed and the deviator has built up
+        past = q[-1] < cfg.drop_fraction * shear_stop.best and shear_stop.best > 0
+        past = past and si.any_failed(state) and strain > 0
+        return state, bool(past or strain >= cfg.max_strain)
+
+    shear_stop.best = -np.inf
+    n = int(math.ceil(cfg.max_strain / cfg.strain_rate / dt)) + 1
+    shear = si.drive(setup, n, cfg, shear_stop, progress=progress)
+    series = si.concat_series([iso.series, shear.series])
+    return {
+        "series": series,
+        "state": shear.state,
+        "setup": setup,
+        "start": len(iso.series["time"]),
+        "height0": h0,
+        "steps": iso.steps + shear.steps,
+        "wall_time_s": iso.wall_time_s + shear.wall_time_s,
+        "result": shear,
+    }
+
+
+def measure_confined(out: dict, thickness: float) -> dict:
+    s_ax, s_lat, h = box_stress(out["series"], thickness)
+    k0 = out["start"]
+    s_ax, s_lat, h = s_ax[k0:], s_lat[k0:], h[k0:]
+    strain = 1.0 - h / out["height0"]
+    q = s_ax - s_lat
+    k = int(np.argmax(q))
+    tail = strain >= strain[-1] - 0.2 * (strain[-1] - strain[0])
+    res = {
+        "sigma1_peak_Pa": float(s_ax[k]),
+        "sigma3_at_peak_Pa": float(s_lat[k]),
+        "strain_at_peak": float(strain[k]),
+        "final_strain": float(strain[-1]),
+        "post_peak_ratio": float(q[tail].mean() / q[k]) if q[k] > 0 else math.nan,
+    }
+    res.update(itf.element_summary(out["state"].bonds))
+    return res
+
+
+def envelope(cfg: Config, *, progress: bool = False) -> dict:
+    """All confinements (and tension / unconfined if asked) on one specimen; peak circles and
+    both envelope fits."""
+    mat = si.material_from(cfg)
+    region = ("rect", (0.0, 0.0), (cfg.width, cfg.height))
+    spec = si.make_specimen(cfg, region, mat)
+    runs, per = [], []
+    for s3 in cfg.confinements:
+        out = run_confined(cfg, float(s3), spec, progress=progress)
+        runs.append(out)
+        per.append({"sigma3_target_Pa": float(s3), **measure_confined(out, mat.thickness)})
+    s1 = [p["sigma1_peak_Pa"] for p in per]
+    s3 = [p["sigma3_at_peak_Pa"] for p in per]
+    extra = {}
+    common = dataclasses.asdict(cfg)
+    if cfg.with_uniaxial:
+        from . import interface_uniaxial as ux
+
+        ucfg = ux.Config(**{k: v for k, v in common.items() if k in _names(ux.Config)})
+        ures, usetup = ux.simulate_test(ucfg, progress=progress)
+        extra["ucs_Pa"] = ux.measure(ures, usetup, ucfg)["ucs_Pa"]
+        s1.append(extra["ucs_Pa"])
+        s3.append(0.0)
+    if cfg.with_tension:
+        from . import interface_tension as tn
+
+        tcfg = tn.Config(**{k: v for k, v in common.items() if k in _names(tn.Config)})
+        tcfg = dataclasses.replace(tcfg, max_strain=0.004, drop_fraction=0.3)
+        tres, tsetup = tn.simulate_test(tcfg, progress=progress)
+        extra["tensile_strength_Pa"] = tn.measure(tres, tsetup, tcfg)["tensile_strength_Pa"]
+        s1.append(0.0)
+        s3.append(-extra["tensile_strength_Pa"])
+    if "ucs_Pa" in extra and "tensile_strength_Pa" in extra:
+        extra["ucs_over_tensile_strength"] = extra["ucs_Pa"] / extra["tensile_strength_Pa"]
+    fits = si.mohr_envelope_fits(s1, s3)
+    return {"runs": runs, "per_confinement": per, "sigma1": s1, "sigma3": s3, "fits": fits, **extra}
+
+
+def _names(cls) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
+
+
+def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
+    env = envelope(cfg, progress=progress)
+    runs = env["runs"]
+    summary = {
+        "bond": cfg.bond,
+        "particles": cfg.particles,
+        "n_particles": runs[0]["setup"].spec.n_particles,
+        "per_confinement": env["per_confinement"],
+        "peak_sigma1_Pa": env["sigma1"],
+        "peak_sigma3_Pa": env["sigma3"],
+        **{f"envelope_{k}": v for k, v in env["fits"].items()},
+        **{k: v for k, v in env.items() if k.endswith("_Pa") or k.startswith("ucs_over")},
+        "steps": int(sum(r["steps"] for r in runs)),
+        "wall_time_s": float(sum(r["wall_time_s"] for r in runs)),
+        "dt_s": float(runs[0]["setup"].params.dt),
+    }
+    last = runs[-1]
+    r0 = last["result"].realisation(0)
+    summary = write_outputs(out_dir, SCENE, cfg, r0, last["setup"].params, summary, vtk=vtk)
+    from .. import plot_interface as pi
+
+    curves = {}
+    T = cfg.thickness
+    for s3, out in zip(cfg.confinements, runs, strict=True):
+        s_ax, s_lat, h = box_stress(out["series"], T)
+        k0 = out["start"]
+        strain = 1.0 - h[k0:] / out["height0"]
+        curves[f"sigma3 = {s3 / 1e6:g} MPa"] = (100 * strain, (s_ax - s_lat)[k0:] / 1e6)
+    figs = [
+        pi.plot_curve(
+            curves, "axial strain (%)", "deviator s1 - s3 (MPa)", Path(out_dir) / "deviator.png"
+        ),
+        pi.plot_mohr(
+            env["sigma1"],
+            env["sigma3"],
+            env["fits"],
+            Path(out_dir) / "mohr_envelope.png",
+            f"bond = {cfg.bond}",
+        ),
+        pi.plot_cracks(
+            last["state"],
+            si.element_table(last["state"]),
+            Path(out_dir) / "cracks_highest_confinement.png",
+        ),
+    ]
+    return si.finish(out_dir, summary, figs)
