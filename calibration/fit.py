@@ -1,0 +1,622 @@
+"""Fit bonded-Voronoi micro-parameters to measured macro-properties by gradient.
+
+    python -m calibration.fit --targets targets.json --scene bonded-brazilian \\
+        [--scene bonded-biaxial] --realisations K [--out calibration_out] [--baseline]
+
+``targets.json`` (see ``calibration/targets_example.json``)::
+
+    {
+      "targets": {                                   # measured figures, uncertainty = 1 sigma
+        "sigma_t": {"value": 1.1e8, "uncertainty": 5e6},          # Pa, Brazilian Eq. 16
+        "slope_S": {"value": 4.8e8, "uncertainty": 3e7},          # Pa, Brazilian Eq. 17
+        "E_c":     {"value": 3.0e10, "uncertainty": 1.5e9},       # Pa, unconfined Eq. 24
+        "nu":      {"value": 0.05, "uncertainty": 0.01},          # -, unconfined Eq. 25
+        "q_peak":  [{"p": 3e8, "value": 3.8e8, "uncertainty": 2e7}]  # Pa at p (Pa)
+      },
+      "initial": {"K_n": 1e8, "K_n/K_t": 1, "B_n": 2e10, "B_n/B_t": 1, "eps_th": 0.02, "mu": 0.3},
+      "free": ["K_n", "B_n/B_t", "eps_th"],
+      "seeds": [0, 1],                        # optional (default 0 .. K-1)
+      "bonded-brazilian": {"n_cells": 30, "lab": {"max_strain": 0.045}},   # scene overrides
+      "bonded-biaxial": {"n_cells": 30, "lab": {"fit_strains": [0.002, 0.008]}},
+      "adam": {"learning_rate": 0.05, "steps": 60}
+    }
+
+**Parameters** are optimised in log space in the dimensionless groups of paper 002
+(Eq. 18-19): ``z = log [K_n, K_n/K_t, B_n, B_n/B_t, eps_th, mu]`` (:data:`GROUPS`), so the
+stiffness ratios and the strength threshold move independently of the stiffness level;
+``free`` names the groups that move, the others stay at ``initial``. Every free group is
+kept within a factor :data:`BOUND` of its initial value (the labs' time step stays stable
+for stiffnesses up to 4x the initial ones, :mod:`jaxgran.labtests`).
+
+**Loss**: ``L = mean_f ((m_f - t_f) / u_f)^2``, the weighted relative misfit of the ensemble
+means ``m_f`` (mean over the K realisations) against the targets ``t_f`` with uncertainties
+``u_f`` (equal to ``((m_f / t_f - 1) / (u_f / t_f))^2``: relative misfit over relative
+uncertainty). Gradients come from reverse mode through the whole lab tests
+(:func:`jaxgran.labtests.figures`), optimised with optax Adam; a gradient-free baseline
+(scipy Nelder-Mead on the same loss, :func:`nelder_mead`) runs with ``--baseline``.
+
+**Uncertainty** of the fitted groups: with the Jacobian ``J = d m / d z`` at the optimum
+and per-figure variances ``s_f^2 = u_f^2 + sd_f^2 / K`` (target uncertainty plus the
+sampling error of the ensemble mean, ``sd_f`` the spread over the realisations), the
+covariance is ``(J^T W J)^-1`` with ``W = diag(1 / s_f^2)``; the part due to the ensemble
+alone (``u_f = 0``) is reported too. Standard deviations of ``log`` groups are relative
+uncertainties.
+
+Outputs in ``--out``: ``fit.json`` (fitted parameters and groups, uncertainties, history,
+simulations and wall time, final simulated-vs-target table), ``convergence.png``
+(:func:`calibration.plots.plot_convergence`), and the table printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+GROUPS = ("K_n", "K_n/K_t", "B_n", "B_n/B_t", "eps_th", "mu")
+"""Optimisation variables (log of each), paper 002's dimensionless groups plus K_n, B_n."""
+
+BOUND = 3.0
+"""Each free group stays within [initial / BOUND, initial x BOUND]."""
+
+SCENES = ("bonded-brazilian", "bonded-biaxial")
+FIGURE_SCENE = {
+    "sigma_t": "bonded-brazilian",
+    "slope_S": "bonded-brazilian",
+    "E_c": "bonded-biaxial",
+    "nu": "bonded-biaxial",
+    "ucs": "bonded-biaxial",
+    "q_peak": "bonded-biaxial",
+}
+
+
+# ------------------------------------------------------------------------------ groups
+
+
+def groups_to_log_params(z):
+    """``log [K_n, K_t, B_n, B_t, eps_th, mu]`` (:data:`jaxgran.labtests.PARAMETERS`) from
+    the log groups ``z`` (:data:`GROUPS`); works on numpy and jax arrays."""
+    import jax.numpy as jnp
+
+    z = jnp.asarray(z)
+    return jnp.stack([z[0], z[0] - z[1], z[2], z[2] - z[3], z[4], z[5]])
+
+
+def groups_from_values(values: dict) -> np.ndarray:
+    """Log groups from a dict of group values (keys of :data:`GROUPS`)."""
+    missing = [g for g in GROUPS if g not in values]
+    if missing:
+        raise ValueError(f"initial values missing for {missing}; give all of {list(GROUPS)}")
+    return np.log(np.array([float(values[g]) for g in GROUPS]))
+
+
+def parameters_from_groups(z) -> dict[str, float]:
+    """Physical micro-parameters (K_n, K_t in N/m; B_n, B_t in Pa; eps_th, mu) and the
+    groups, from log groups ``z``."""
+    v = np.exp(np.asarray(z, float))
+    return {
+        "K_n": v[0],
+        "K_t": v[0] / v[1],
+        "B_n": v[2],
+        "B_t": v[2] / v[3],
+        "eps_th": v[4],
+        "mu": v[5],
+        "K_n/K_t": v[1],
+        "B_n/B_t": v[3],
+    }
+
+
+# ------------------------------------------------------------------------------ problem
+
+
+@dataclasses.dataclass
+class Target:
+    """One measured figure: ``name`` (:data:`FIGURE_SCENE`), value and 1-sigma uncertainty
+    (Pa, or - for nu), and for q_peak the mean stress ``p`` (Pa)."""
+
+    name: str
+    value: float
+    uncertainty: float
+    p: float | None = None
+
+    @property
+    def label(self) -> str:
+        return self.name if self.p is None else f"{self.name}@p={self.p:.4g}"
+
+
+def parse_targets(spec: dict) -> list[Target]:
+    out = []
+    for name, entry in spec.items():
+        if name not in FIGURE_SCENE:
+            raise ValueError(f"unknown target {name!r}; known: {sorted(FIGURE_SCENE)}")
+        for e in entry if isinstance(entry, list) else [entry]:
+            t = Target(name, float(e["value"]), float(e["uncertainty"]), e.get("p"))
+            if not t.uncertainty > 0:
+                raise ValueError(f"target {t.label}: uncertainty must be > 0")
+            if name == "q_peak" and t.p is None:
+                raise ValueError("a q_peak target needs the mean stress p (Pa) it was measured at")
+            out.append(t)
+    if not out:
+        raise ValueError("no targets given")
+    return out
+
+
+@dataclasses.dataclass
+class Problem:
+    """Labs (one per scene), targets and the free groups of a calibration."""
+
+    labs: dict
+    targets: list[Target]
+    z0: np.ndarray
+    free: list[int]
+    seeds: list[int]
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+    def full(self, x):
+        """Log groups with the free ones replaced by ``x``."""
+        import jax.numpy as jnp
+
+        return jnp.asarray(self.z0).at[jnp.asarray(self.free)].set(x)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        x0 = self.z0[self.free]
+        return x0 - math.log(BOUND), x0 + math.log(BOUND)
+
+
+def _scene_config(scene: str, overrides: dict):
+    from jaxgran.scenes import bonded_biaxial as bx
+    from jaxgran.scenes import bonded_brazilian as bz
+
+    base = bz.Config() if scene == "bonded-brazilian" else bx.Config()
+    kw = {k: v for k, v in overrides.items() if k != "lab"}
+    if "p_values" in kw:
+        kw["p_values"] = tuple(kw["p_values"])
+    return dataclasses.replace(base, **kw), dict(overrides.get("lab", {}))
+
+
+def build_labs(
+    scenes: list[str],
+    targets: list[Target],
+    initial: dict,
+    seeds: list[int],
+    scene_options: dict,
+    *,
+    surrogate_width: float = 0.2,
+    peak_from_targets: bool = True,
+) -> dict:
+    """One lab per scene for the ``seeds``, its material set to the ``initial`` groups;
+    the biaxial lab runs the unconfined test when E_c / nu / ucs are targets and a
+    constant-p test for every p of the q_peak targets. With ``peak_from_targets`` the width
+    of the smooth maxima is ``peak_fraction`` (lab option, default 0.02) of the target peak
+    (sigma_t, ucs, q_peak) instead of the initial guess's, so it does not depend on the
+    starting point."""
+    from jaxgran import labtests as lt
+
+    z0 = groups_from_values(initial)
+    log_p = np.asarray(groups_to_log_params(z0))
+    labs = {}
+    for scene in scenes:
+        if scene not in SCENES:
+            raise ValueError(f"unknown scene {scene!r}; calibration knows {list(SCENES)}")
+        mine = [t for t in targets if FIGURE_SCENE[t.name] == scene]
+        if not mine:
+            raise ValueError(f"scene {scene} was asked for but no target belongs to it")
+        cfg, opts = _scene_config(scene, scene_options.get(scene, {}))
+        cfg = _with_material(cfg, log_p)
+        opts.setdefault("surrogate_width", surrogate_width)
+        if scene == "bonded-brazilian":
+            labs[scene] = lt.brazilian_lab(cfg, seeds, **opts)
+        else:
+            ps = sorted({t.p for t in mine if t.name == "q_peak"})
+            unconf = any(t.name in ("E_c", "nu", "ucs") for t in mine)
+            if "fit_strains" in opts:
+                opts["fit_strains"] = tuple(opts["fit_strains"])
+            labs[scene] = lt.biaxial_lab(cfg, seeds, unconfined=unconf, p_values=ps, **opts)
+    if peak_from_targets:
+        labs = _peak_widths(labs, targets, scene_options)
+    missing = {FIGURE_SCENE[t.name] for t in targets} - set(labs)
+    if missing:
+        raise ValueError(f"targets need the scene(s) {sorted(missing)}: add --scene for them")
+    return labs
+
+
+def common_time_step(scene: str, overrides: dict, materials: list[dict], seed: int = 0) -> float:
+    """The smallest default time step (s) of ``scene`` (with ``overrides``) over the group
+    values of ``materials``: give it to every lab (lab option ``dt``) that must share one
+    time discretisation, e.g. a synthetic twin's truth and fit."""
+    from jaxgran.scenes import bonded_biaxial as bx
+    from jaxgran.scenes import bonded_brazilian as bz
+
+    cfg, _ = _scene_config(scene, overrides)
+    dts = []
+    for m in materials:
+        c = _with_material(cfg, np.asarray(groups_to_log_params(groups_from_values(m))))
+        if scene == "bonded-brazilian":
+            dts.append(float(bz.build(c, seeds=[seed]).params.dt))
+        else:
+            dts.append(float(bx.build(c, [(seed, 0.0)]).params.dt))
+    return min(dts)
+
+
+def _peak_widths(labs: dict, targets: list[Target], scene_options: dict) -> dict:
+    from jaxgran.state import replace
+
+    def frac(scene):
+        return float(scene_options.get(scene, {}).get("lab", {}).get("peak_fraction", 0.02))
+
+    val = {t.name: t.value for t in targets}
+    out = dict(labs)
+    lab = labs.get("bonded-brazilian")
+    if lab is not None and "sigma_t" in val:  # Eq. 16 back to a force
+        force = val["sigma_t"] * np.pi * float(lab.diameter) * float(lab.thickness) / 2.0
+        width = frac("bonded-brazilian") * force
+        out["bonded-brazilian"] = replace(lab, peak_width=lab.peak_width * 0 + width)
+    lab = labs.get("bonded-biaxial")
+    if lab is not None:
+        w = np.asarray(lab.peak_width, float).copy()
+        if "ucs" in val:
+            w[0] = frac("bonded-biaxial") * val["ucs"]
+        qs = [t.value for t in targets if t.name == "q_peak"]
+        if qs:
+            w[1] = frac("bonded-biaxial") * float(np.mean(qs))
+        out["bonded-biaxial"] = replace(lab, peak_width=lab.peak_width * 0 + w)
+    return out
+
+
+def _with_material(cfg, log_p):
+    v = np.exp(np.asarray(log_p, float))
+    return dataclasses.replace(
+        cfg,
+        normal_stiffness=float(v[0]),
+        tangential_stiffness=float(v[1]),
+        b_n=float(v[2]),
+        b_t=float(v[3]),
+        eps_th=float(v[4]),
+        friction=float(v[5]),
+    )
+
+
+def figure_values(figs: dict, labs: dict, targets: list[Target]):
+    """Per target, the figure of every realisation ``[K]`` (jax arrays)."""
+    out = []
+    for t in targets:
+        lab = labs[FIGURE_SCENE[t.name]]
+        f = figs[FIGURE_SCENE[t.name]][t.name]
+        if t.name == "q_peak":
+            f = f[list(lab.p_values).index(float(t.p))]
+        out.append(f)
+    return out
+
+
+def simulate_all(problem: Problem, x):
+    """Figures per target ``[n_targets, K]`` and the error bits of every lab, for the free
+    log groups ``x`` (jax-traceable)."""
+    import jax.numpy as jnp
+
+    from jaxgran import labtests as lt
+
+    log_p = groups_to_log_params(problem.full(x))
+    figs, errs = {}, []
+    for scene, lab in problem.labs.items():
+        figs[scene], err = lt.figures(log_p, lab)
+        errs.append(err)
+    return jnp.stack(figure_values(figs, problem.labs, problem.targets)), errs
+
+
+def loss_of(means, problem: Problem):
+    """``mean_f ((m_f - t_f) / u_f)^2`` (see the module docstring)."""
+    import jax.numpy as jnp
+
+    t = jnp.asarray([tt.value for tt in problem.targets])
+    u = jnp.asarray([tt.uncertainty for tt in problem.targets])
+    return jnp.mean(((means - t) / u) ** 2)
+
+
+def make_functions(problem: Problem):
+    """Jitted ``value_and_grad`` and forward loss of the free log groups; both return the
+    figures ``[n_targets, K]`` and error bits too."""
+    import jax
+
+    def loss(x):
+        vals, errs = simulate_all(problem, x)
+        return loss_of(vals.mean(axis=1), problem), (vals, errs)
+
+    return jax.jit(jax.value_and_grad(loss, has_aux=True)), jax.jit(loss)
+
+
+def _check(errs):
+    from jaxgran import labtests as lt
+
+    for e in errs:
+        lt.check_errors(e)
+
+
+# ------------------------------------------------------------------------------ optimisers
+
+
+def adam(
+    problem: Problem,
+    *,
+    learning_rate: float = 0.05,
+    steps: int = 60,
+    tol: float = 1e-3,
+    x0=None,
+    log=print,
+) -> dict:
+    """Adam (optax; learning rate decaying as a cosine from ``learning_rate`` to 5 % of it
+    over ``steps``) on the free log groups, projected onto the bounds; stops after
+    ``steps`` iterations or once the loss is below ``tol``. Returns the best point, its
+    loss, the history and the count of simulations (one forward + one reverse pass of every
+    lab per iteration) and the wall time (s, compilation included)."""
+    import jax.numpy as jnp
+    import optax
+
+    vg, _ = make_functions(problem)
+    lo, hi = problem.bounds()
+    x = jnp.asarray(problem.z0[problem.free] if x0 is None else x0)
+    # cosine decay to 5 % of the rate: Adam's steps do not shrink near the optimum otherwise
+    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(steps, 1), alpha=0.05))
+    state = opt.init(x)
+    hist = {"loss": [], "x": [], "time_s": []}
+    best = (np.inf, np.asarray(x))
+    t0 = time.perf_counter()
+    for it in range(steps):
+        (val, (_, errs)), g = vg(x)
+        _check(errs)
+        val = float(val)
+        hist["loss"].append(val)
+        hist["x"].append(np.asarray(x).tolist())
+        hist["time_s"].append(time.perf_counter() - t0)
+        if val < best[0]:
+            best = (val, np.asarray(x))
+        log(f"adam {it:3d}  loss {val:.4g}  x {np.round(np.exp(np.asarray(x)), 5).tolist()}")
+        if val < tol:
+            break
+        upd, state = opt.update(g, state, x)
+        x = jnp.clip(optax.apply_updates(x, upd), lo, hi)
+    return {
+        "x": best[1],
+        "loss": best[0],
+        "history": hist,
+        "simulations": len(hist["loss"]),
+        "gradient_evaluations": len(hist["loss"]),
+        "wall_time_s": time.perf_counter() - t0,
+    }
+
+
+def nelder_mead(
+    problem: Problem, *, max_evaluations: int = 200, tol: float = 1e-3, x0=None, log=print
+) -> dict:
+    """Gradient-free baseline: scipy Nelder-Mead on the same loss (forward runs only), in
+    the same log groups, with an initial simplex of +-10 % steps and the same bounds."""
+    from scipy.optimize import minimize
+
+    _, fwd = make_functions(problem)
+    lo, hi = problem.bounds()
+    hist = {"loss": [], "x": [], "time_s": []}
+    t0 = time.perf_counter()
+
+    def f(x):
+        val, (_, errs) = fwd(np.clip(x, lo, hi))
+        _check(errs)
+        val = float(val)
+        hist["loss"].append(val)
+        hist["x"].append(np.asarray(x).tolist())
+        hist["time_s"].append(time.perf_counter() - t0)
+        if len(hist["loss"]) % 10 == 0:
+            log(f"nelder-mead {len(hist['loss']):4d}  loss {min(hist['loss']):.4g}")
+        return val
+
+    start = np.asarray(problem.z0[problem.free] if x0 is None else x0, float)
+    simplex = [start] + [start + 0.1 * np.eye(start.size)[k] for k in range(start.size)]
+    res = minimize(
+        f,
+        start,
+        method="Nelder-Mead",
+        options={
+            "maxfev": max_evaluations,
+            "fatol": tol,
+            "xatol": 1e-3,
+            "initial_simplex": np.array(simplex),
+        },
+    )
+    k = int(np.argmin(hist["loss"]))
+    return {
+        "x": np.clip(np.asarray(hist["x"][k]), lo, hi),
+        "loss": hist["loss"][k],
+        "history": hist,
+        "simulations": len(hist["loss"]),
+        "wall_time_s": time.perf_counter() - t0,
+        "message": str(res.message),
+    }
+
+
+# ------------------------------------------------------------------------------ report
+
+
+def uncertainty(problem: Problem, x) -> dict:
+    """Covariance of the free log groups from the Jacobian of the ensemble means and the
+    ensemble spread (module docstring); standard deviations of the log groups, i.e.
+    relative uncertainties of the groups."""
+    import jax
+
+    def means(xx):
+        vals, _ = simulate_all(problem, xx)
+        return vals.mean(axis=1), vals
+
+    jac, vals = jax.jit(jax.jacfwd(means, has_aux=True))(jax.numpy.asarray(x))
+    jac, vals = np.asarray(jac), np.asarray(vals)
+    k = vals.shape[1]
+    spread = vals.std(axis=1, ddof=1) if k > 1 else np.zeros(vals.shape[0])
+    u = np.array([t.uncertainty for t in problem.targets])
+    out = {"jacobian_dlog": jac.tolist(), "ensemble_std": spread.tolist()}
+    for name, var in (("total", u**2 + spread**2 / k), ("ensemble_only", spread**2 / k)):
+        if np.all(var > 0):
+            w = 1.0 / var
+            try:
+                cov = np.linalg.inv(jac.T @ (w[:, None] * jac))
+                out[f"relative_std_{name}"] = np.sqrt(np.diag(cov)).tolist()
+                out[f"covariance_log_{name}"] = cov.tolist()
+            except np.linalg.LinAlgError:
+                out[f"relative_std_{name}"] = None
+    return out
+
+
+def table(problem: Problem, x) -> list[dict]:
+    """Final simulated (ensemble mean and std) against target, per target."""
+    _, fwd = make_functions(problem)
+    _, (vals, _) = fwd(x)
+    vals = np.asarray(vals)
+    rows = []
+    for t, v in zip(problem.targets, vals, strict=True):
+        m = float(v.mean())
+        rows.append(
+            {
+                "figure": t.label,
+                "target": t.value,
+                "uncertainty": t.uncertainty,
+                "simulated_mean": m,
+                "simulated_std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+                "relative_misfit": m / t.value - 1.0,
+            }
+        )
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = [
+        f"{'figure':<18}{'target':>14}{'+-':>12}{'simulated':>14}{'std':>12}{'misfit':>9}",
+    ]
+    for r in rows:
+        lines.append(
+            f"{r['figure']:<18}{r['target']:>14.4g}{r['uncertainty']:>12.3g}"
+            f"{r['simulated_mean']:>14.4g}{r['simulated_std']:>12.3g}"
+            f"{100 * r['relative_misfit']:>8.2f}%"
+        )
+    return "\n".join(lines)
+
+
+def make_problem(
+    spec: dict, scenes: list[str], realisations: int, seeds=None, peak_from_targets: bool = True
+) -> Problem:
+    """A :class:`Problem` from a targets spec (module docstring)."""
+    targets = parse_targets(spec["targets"])
+    initial = spec.get("initial") or {
+        "K_n": 1.0e8,
+        "K_n/K_t": 1.0,
+        "B_n": 2.0e10,
+        "B_n/B_t": 1.0,
+        "eps_th": 0.02,
+        "mu": 0.3,
+    }
+    free = spec.get("free", ["K_n", "B_n/B_t", "eps_th"])
+    bad = [g for g in free if g not in GROUPS]
+    if bad:
+        raise ValueError(f"unknown free groups {bad}; choose from {list(GROUPS)}")
+    if seeds is None:
+        seeds = spec.get("seeds") or list(range(realisations))
+    seeds = list(seeds)[:realisations]
+    if len(seeds) < realisations:
+        raise ValueError(f"{realisations} realisations asked but only {len(seeds)} seeds given")
+    opts = {s: spec.get(s, {}) for s in SCENES}
+    width = float(spec.get("surrogate_width", 0.2))
+    labs = build_labs(
+        scenes,
+        targets,
+        initial,
+        seeds,
+        opts,
+        surrogate_width=width,
+        peak_from_targets=peak_from_targets,
+    )
+    z0 = groups_from_values(initial)
+    return Problem(labs, targets, z0, [GROUPS.index(g) for g in free], seeds)
+
+
+def report(problem: Problem, result: dict, method: str) -> dict:
+    z = np.asarray(problem.full(result["x"]))
+    free_names = [GROUPS[i] for i in problem.free]
+    out = {
+        "method": method,
+        "parameters": parameters_from_groups(z),
+        "free": free_names,
+        "loss": result["loss"],
+        "simulations": result["simulations"],
+        "wall_time_s": result["wall_time_s"],
+        "seeds": problem.seeds,
+        "history": result["history"],
+        "table": table(problem, result["x"]),
+    }
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m calibration.fit", description=__doc__.split("\n")[0]
+    )
+    ap.add_argument("--targets", required=True, type=Path)
+    ap.add_argument("--scene", action="append", choices=SCENES, required=True)
+    ap.add_argument("--realisations", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("calibration_out"))
+    ap.add_argument("--steps", type=int, default=None, help="Adam iterations")
+    ap.add_argument("--learning-rate", type=float, default=None)
+    ap.add_argument("--baseline", action="store_true", help="also run Nelder-Mead")
+    ap.add_argument("--max-evaluations", type=int, default=200)
+    ap.add_argument("--float32", action="store_true", help="single precision (default x64)")
+    args = ap.parse_args(argv)
+
+    import os
+
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    import jax
+
+    jax.config.update("jax_enable_x64", not args.float32)
+    spec = json.loads(args.targets.read_text())
+    return run(spec, args.scene, args.realisations, args.out, args)
+
+
+def run(spec: dict, scenes, realisations: int, out_dir: Path, args=None) -> int:
+    from .plots import plot_convergence
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    problem = make_problem(spec, list(scenes), realisations)
+    build_s = time.perf_counter() - t0
+    a = spec.get("adam", {})
+    steps = getattr(args, "steps", None) or a.get("steps", 60)
+    lr = getattr(args, "learning_rate", None) or a.get("learning_rate", 0.05)
+    res = adam(problem, learning_rate=lr, steps=steps, tol=a.get("tol", 1e-3))
+    summary = {"adam": report(problem, res, "adam"), "build_s": build_s}
+    summary["adam"]["uncertainty"] = uncertainty(problem, res["x"])
+    histories = {"Adam (gradient)": res["history"]}
+    if getattr(args, "baseline", False):
+        nm = nelder_mead(problem, max_evaluations=args.max_evaluations, tol=a.get("tol", 1e-3))
+        summary["nelder_mead"] = report(problem, nm, "nelder-mead")
+        histories["Nelder-Mead"] = nm["history"]
+    summary["convergence_plot"] = str(plot_convergence(histories, out_dir / "convergence.png"))
+    (out_dir / "fit.json").write_text(json.dumps(summary, indent=2, default=_json))
+    print(format_table(summary["adam"]["table"]))
+    p = summary["adam"]["parameters"]
+    rel = summary["adam"]["uncertainty"].get("relative_std_total") or []
+    for name, s in zip(summary["adam"]["free"], rel, strict=False):
+        print(f"{name:>10} = {p[name]:.5g}  (+- {100 * s:.2f} %)")
+    print(f"wrote {out_dir / 'fit.json'} and {summary['convergence_plot']}")
+    return 0
+
+
+def _json(o):
+    if isinstance(o, np.ndarray | np.generic):
+        return o.tolist()
+    raise TypeError(f"{type(o)} is not JSON serialisable")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
