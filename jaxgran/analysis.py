@@ -162,6 +162,81 @@ def hoek_brown_fit(sigma_1, sigma_3) -> dict[str, float]:
     }
 
 
+def hoek_brown_fit_pq(p, q) -> dict[str, float]:
+    """Fit Eq. 31 in the 2D invariants, ``q(p) = (sqrt(A^2 + 16 (A p + B^2)) - A) / 8``
+    (:func:`hoek_brown_q`), to peak deviatoric stresses q (Pa) at mean stresses p (Pa) by
+    nonlinear least squares in q.
+
+    In a constant-p test p is the controlled variable and q_peak the measured one, so this is
+    the regression with the error where it belongs (paper 002 fits Eq. 31 to its p-q
+    envelope, Fig. 22); :func:`hoek_brown_fit` regresses on s3 = p - q, which carries the
+    scatter of q. A >= 0 (m_i >= 0) is enforced.
+
+    Returns A, B (Pa) with standard errors and covariance (``cov``, order A, B; from the
+    Jacobian at the optimum and the residual variance with n - 2 degrees of freedom), ``r2``
+    of q, ``rmse`` (Pa), ``at_bound`` (True when A = 0, the Tresca limit: q independent of
+    p), ``sigma_ci`` = B, ``m_i`` = A / B and ``n``.
+    """
+    from scipy.optimize import least_squares
+
+    p = np.asarray(p, float).ravel()
+    q = np.asarray(q, float).ravel()
+    ok = np.isfinite(p) & np.isfinite(q)
+    p, q = p[ok], q[ok]
+    n = p.size
+    if n < 3:
+        raise ValueError(f"a Hoek-Brown fit needs at least 3 (p, q) points, got {n}")
+    scale = float(np.max(np.abs(q)))
+    if not scale > 0:
+        raise ValueError("all q are zero: no envelope to fit")
+    # start from the Hoek & Brown regression when it is valid, else from a Tresca envelope
+    try:
+        start = hoek_brown_fit(p + q, p - q)
+        x0 = [max(start["A"], 0.0) / scale, start["B"] / scale]
+    except ValueError:
+        x0 = [0.0, 2.0 * float(np.mean(q)) / scale]
+    pn = p / scale
+    fun = lambda x: hoek_brown_q(pn, x[0], x[1]) - q / scale
+    res = least_squares(fun, x0, bounds=([0.0, 1e-12], [np.inf, np.inf]), x_scale=1.0)
+    a, b = res.x * scale
+    resid = res.fun * scale
+    ss_res = float(resid @ resid)
+    ss_tot = float(((q - q.mean()) ** 2).sum())
+    jac = res.jac  # d(q / scale) / d(x), x = (A, B) / scale: same as dq / d(A, B)
+    dof = max(n - 2, 1)
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * ss_res / dof
+    except np.linalg.LinAlgError:
+        cov = np.full((2, 2), np.nan)
+    return {
+        "A": float(a),
+        "B": float(b),
+        "A_err": float(np.sqrt(cov[0, 0])),
+        "B_err": float(np.sqrt(cov[1, 1])),
+        "cov": cov.tolist(),
+        "r2": 1.0 - ss_res / ss_tot if ss_tot > 0 else 1.0,
+        "rmse": math.sqrt(ss_res / n),
+        "at_bound": bool(a <= 1e-9 * scale),
+        "sigma_ci": float(b),
+        "m_i": float(a / b),
+        "n": int(n),
+    }
+
+
+def frictional_line(p, q) -> dict[str, float]:
+    """Straight envelope ``q = M p + c`` of residual (critical) states (Pa): :func:`linear_fit`
+    plus the 2D friction angle ``phi = asin(M)`` (deg) and cohesion ``c / cos(phi)`` (Pa) of
+    the Mohr-Coulomb line that the 2D invariants give (``q = p sin phi + c cos phi``)."""
+    fit = linear_fit(p, q)
+    m = fit["slope"]
+    out = dict(fit)
+    if abs(m) < 1.0:
+        phi = math.asin(m)
+        out["friction_angle_deg"] = math.degrees(phi)
+        out["cohesion_Pa"] = fit["intercept"] / math.cos(phi)
+    return out
+
+
 # ------------------------------------------------------------------------------ bursts
 
 

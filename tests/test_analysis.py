@@ -95,6 +95,51 @@ def test_hoek_brown_in_2d_invariants():
     np.testing.assert_allclose(an.hoek_brown_q(p, a, b), q, rtol=1e-12)
 
 
+def test_hoek_brown_fit_pq_recovers_parameters_and_their_errors():
+    """Eq. 31 (2D) fitted to q(p) with q noisy and p exact, as in a constant-p test."""
+    a, b = 600.0, 50.0
+    p = np.linspace(5.0, 80.0, 10)
+    q = an.hoek_brown_q(p, a, b)
+    fit = an.hoek_brown_fit_pq(p, q)
+    assert fit["A"] == pytest.approx(a, rel=1e-6)
+    assert fit["B"] == pytest.approx(b, rel=1e-6)
+    assert fit["r2"] == pytest.approx(1.0) and not fit["at_bound"]
+    # with exact data both regressions agree (same envelope, Eq. 30 <=> Eq. 31)
+    s = an.hoek_brown_fit(p + q, p - q)
+    assert s["A"] == pytest.approx(fit["A"], rel=1e-6)
+    hits = np.zeros(2)
+    for seed in range(100):
+        rng = np.random.default_rng(seed)
+        f = an.hoek_brown_fit_pq(p, q + rng.normal(0.0, 1.0, q.size))
+        hits += [abs(f["A"] - a) < 2.0 * f["A_err"], abs(f["B"] - b) < 2.0 * f["B_err"]]
+    assert np.all(hits / 100 >= 0.85)
+
+
+def test_hoek_brown_fit_pq_tresca_limit():
+    """q independent of p is Hoek-Brown with A = 0 (m_i = 0, Tresca): exact data put the
+    fit on its bound and it says so; with scatter A is consistent with 0 and R^2 of q is
+    near 0, as nothing in q is explained by p."""
+    p = np.repeat([50.0, 100.0, 150.0, 200.0], 4)
+    flat = an.hoek_brown_fit_pq(p, np.full(p.size, 240.0))
+    assert flat["at_bound"] and flat["A"] == pytest.approx(0.0, abs=1e-6)
+    assert flat["B"] == pytest.approx(480.0, rel=1e-9)
+    q = 240.0 + np.random.default_rng(7).normal(0.0, 5.0, p.size)
+    fit = an.hoek_brown_fit_pq(p, q)
+    assert abs(fit["A"]) < 2.0 * fit["A_err"]
+    assert fit["B"] == pytest.approx(2.0 * q.mean(), rel=0.02)
+    assert fit["r2"] < 0.2
+
+
+def test_frictional_line_gives_the_mohr_coulomb_angle():
+    phi, c = math.radians(30.0), 10.0
+    p = np.linspace(50.0, 300.0, 8)
+    q = p * math.sin(phi) + c * math.cos(phi)
+    line = an.frictional_line(p, q)
+    assert line["friction_angle_deg"] == pytest.approx(30.0, rel=1e-10)
+    assert line["cohesion_Pa"] == pytest.approx(c, rel=1e-10)
+    assert line["r2"] == pytest.approx(1.0)
+
+
 def _continuous_power_law(alpha, x_min, n, rng):
     return x_min * (1.0 - rng.random(n)) ** (-1.0 / (alpha - 1.0))
 

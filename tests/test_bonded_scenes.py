@@ -221,3 +221,86 @@ def test_euler_bernoulli_cantilever_formula():
     h = x[1] - x[0]
     curv = np.diff(w[:150], 2) / h**2
     np.testing.assert_allclose(curv, f * (a - x[1:149]) / (e * i), rtol=1e-6)
+
+
+def test_bimodular_flexural_modulus_from_the_section():
+    """Pure bending of a rectangular section of a bimodular material: the neutral axis sits
+    where the tension and compression forces balance, and M / (kappa I) is E_f."""
+    e_t, e_c, depth, kappa = 19.9e9, 32.5e9, 0.05, 1.0e-3
+    y = np.linspace(-0.5 * depth, 0.5 * depth, 200_001)  # across the depth (m)
+    dy = y[1] - y[0]
+
+    def stress(y0):  # curvature about the axis y = y0; y > y0 in tension
+        strain = kappa * (y - y0)
+        return np.where(strain > 0, e_t, e_c) * strain
+
+    lo, hi = -0.5 * depth, 0.5 * depth
+    for _ in range(80):  # bisection on the axial force balance
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.trapezoid(stress(mid), dx=dy) > 0 else (lo, mid)
+    y0 = 0.5 * (lo + hi)
+    moment = np.trapezoid(stress(y0) * (y - y0), dx=dy)  # per unit width
+    assert y0 < 0.0  # the neutral axis moves to the stiffer (compression) side
+    assert moment / (kappa * depth**3 / 12) == pytest.approx(
+        bc.flexural_modulus(e_t, e_c), rel=1e-6
+    )
+    assert bc.flexural_modulus(e_c, e_c) == pytest.approx(e_c, rel=1e-14)
+
+
+def test_timoshenko_and_the_clamp_compliance_fit():
+    f, a, e, i, area = 150.0, 0.27, 25.0e9, 1.0e-7, 5.0e-4
+    x = np.linspace(0.005, 0.28, 120)
+    # shear adds F x / (k G A), k = 5/6 and G = E / 2 at nu = 0
+    shear = bc.timoshenko(x, f, a, e, i, area, 0.0) - bc.euler_bernoulli(x, f, a, e, i)
+    np.testing.assert_allclose(shear, f * np.minimum(x, a) / (5.0 / 6.0 * 0.5 * e * area))
+    # a beam that bends with E but whose root turns by theta0: the tip error against Eq. 29
+    # is the root's share, and the fit with a free root rotation gives E back exactly
+    theta0 = 1.0e-4
+    w = bc.euler_bernoulli(x, f, a, e, i) + theta0 * x
+    cfg = bc.Config()
+    geo = {"force_N": f, "arm_m": a, "second_moment_m4": i}
+    out = bc.compare_deflection(x, w, geo, cfg, {"E_c_Pa": e, "E_t_Pa": e, "poisson_ratio": 0.0})
+    assert out["E_bending_Pa"] == pytest.approx(e, rel=1e-9)
+    assert out["root_rotation_rad"] == pytest.approx(theta0, rel=1e-9)
+    tip = bc.euler_bernoulli(x[-1], f, a, e, i)
+    assert out["tip_error_E_c"] == pytest.approx(theta0 * x[-1] / tip, rel=0.05)
+    assert out["E_flexural_Pa"] == pytest.approx(e)
+
+
+def test_envelope_fits_use_only_softening_peaks():
+    """Hoek-Brown data on the true peaks, frictional plateaus (no softening) at high p that
+    lie off the envelope, and a residual line: the plateaus must not enter the fit."""
+    a, b, m, c = 400.0e6, 450.0e6, 0.7, 40.0e6
+    rows = []
+    for p in (50e6, 100e6, 150e6, 200e6):
+        q = float(an_q(p, a, b))
+        rows.append(_row(p, q, True, m * p + c))
+    for p in (300e6, 400e6):  # max q is the plateau, far below the envelope's continuation
+        rows.append(_row(p, m * p + c, False, m * p + c))
+    ucs = [b]  # Eq. 30 at s3 = 0: s1 = B
+    out = bx.envelope_fits(rows, ucs)
+    assert out["n_true_peaks"] == 4 and out["n_unconfined"] == 1
+    assert out["hoek_brown"]["A"] == pytest.approx(a, rel=1e-6)
+    assert out["hoek_brown"]["B"] == pytest.approx(b, rel=1e-6)
+    assert out["hoek_brown_s1s3"]["r2"] == pytest.approx(1.0)
+    line = out["residual_line"]
+    assert line["slope"] == pytest.approx(m) and line["intercept"] == pytest.approx(c)
+    means = bx.envelope_fits(rows + rows, ucs, means=True)
+    assert means["hoek_brown"]["n"] == 5 and means["residual_line"]["n"] == 6
+
+
+def an_q(p, a, b):
+    from jaxgran.analysis import hoek_brown_q
+
+    return hoek_brown_q(p, a, b)
+
+
+def _row(p, q, true, q_res):
+    return {
+        "p_target_Pa": p,
+        "p_at_peak_Pa": p,
+        "q_peak_Pa": q,
+        "true_peak": true,
+        "p_residual_Pa": p,
+        "q_residual_Pa": q_res,
+    }

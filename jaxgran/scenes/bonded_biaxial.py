@@ -22,12 +22,21 @@ Tests, each optional and each run for ``realisations`` Voronoi seeds at once und
    to p with four servo walls, then the axial walls move at constant strain rate while the
    lateral servo walls hold ``s3 = 2 p - s1`` (:func:`jaxgran.scenes.bonded.apply_control`).
    The walls are bonded to the block (paper 002 §4.3), so s3 may turn tensile at low p.
-   Peak and residual q (mean of the last ``residual_fraction`` of the strain), and the
-   Hoek-Brown fit of the peaks (paper 002 Eq. 30-31; regression of PHYSICS §F) with the
-   unconfined strength as the s3 = 0 point, its covariance and R^2. Hoek-Brown is a
-   criterion for confined compression: the fit uses the peaks with s3 >= 0 (with the
-   Table-1 material q_peak ~ 250 MPa, so p >= ~300 MPa); the fit to all peaks, including
-   those where the constant-p path has made s3 tensile, is reported as well.
+   Peak and residual q (mean p and q over the last ``residual_fraction`` of the strain),
+   and :func:`envelope_fits`: the Hoek-Brown fit of the peak envelope (paper 002 Eq. 30-31)
+   and the straight frictional line of the residual states.
+
+**Which peaks are a strength envelope.** Only tests whose q has a softening peak (it lies
+before the residual window and exceeds the residual q by more than 5 %, ``true_peak``)
+enter the Hoek-Brown fit, with the unconfined strengths as (s3 = 0, s1 = UCS) points. At
+high p the bonds are broken by the isotropic compression itself (Eq. 15 counts |eps_n|) and
+max q is only the top of the frictional plateau (paper 002 §4.4: the peak is "overtaken by
+the frictional residual state"); these belong to the residual line, not to the peak
+envelope. With the Table-1 material in 2D the peak q hardly depends on p (bond breakage is
+set by a strain, Eq. 15, and reached before friction is mobilised), so s3 at the peak is
+tensile for p below q_peak ~ 250 MPa and the envelope is close to Hoek-Brown's Tresca limit
+(A -> 0). The fit is reported both as Eq. 31 (2D) regressed on p (q measured, p
+controlled; R^2 of q) and as the Hoek & Brown (1997) regression of Eq. 30 on s3 (R^2 of s1).
 """
 
 from __future__ import annotations
@@ -268,8 +277,19 @@ def isotropic_then_shear(
     return shear, iso, setup, members
 
 
-def measure_shear(run, p_target: float, thickness: float, residual_fraction: float) -> dict:
-    """Peak / residual q, the strains at the peak and the drift of p during shearing."""
+def measure_shear(
+    run, p_target: float, thickness: float, residual_fraction: float, softening: float = 0.05
+) -> dict:
+    """Peak / residual q, the strains at the peak and the drift of p during shearing.
+
+    The residual state is the mean p and q over the last ``residual_fraction`` of the axial
+    strain (``p_residual_Pa`` is measured, not the target: once a specimen has split under
+    lateral tension the servo cannot hold p). ``true_peak`` marks a peak that lies before
+    that window and exceeds the residual q by more than ``softening`` (a brittle peak of
+    the bonded solid); at high p the maximum of q is only the top of the frictional plateau
+    (paper 002 §4.4: the peak is "overtaken by the frictional residual state") and does not
+    belong to the peak-strength envelope.
+    """
     s_ax, s_lat, height, width = stresses(run.series, thickness)
     e1 = 1.0 - height / height[0]
     e3 = 1.0 - width / width[0]
@@ -296,6 +316,11 @@ def measure_shear(run, p_target: float, thickness: float, residual_fraction: flo
         "sigma_3_peak_Pa": float(s_lat[k]),
         "axial_strain_at_peak": float(e1[k]),
         "q_residual_Pa": float(q[tail].mean()),
+        "p_residual_Pa": float(p[tail].mean()),
+        "q_drop_after_peak": float(1.0 - q[tail].mean() / q[k]) if q[k] > 0 else float("nan"),
+        "true_peak": bool(
+            e1[k] < (1.0 - residual_fraction) * e1[-1] and q[tail].mean() < (1 - softening) * q[k]
+        ),
         "p_max_relative_deviation": float(dev.max()) if dev.size else float("nan"),
         "p_mean_relative_deviation": float(dev.mean()) if dev.size else float("nan"),
         "p_max_relative_deviation_to_peak": float(pre.max()) if pre.size else float("nan"),
@@ -403,6 +428,52 @@ def measure_elastic(run, gauge0: np.ndarray, thickness: float, sign: float) -> d
     return out
 
 
+def envelope_fits(shear: list[dict], unconfined_strengths=(), *, means: bool = False) -> dict:
+    """Strength envelopes from :func:`measure_shear` summaries (one per test) and unconfined
+    strengths (Pa): ``hoek_brown`` (Eq. 31 in 2D on the true peaks' measured (p, q) and the
+    UCS points (UCS/2, UCS/2), :func:`jaxgran.analysis.hoek_brown_fit_pq`),
+    ``hoek_brown_s1s3`` (Eq. 30 by the regression on s3, :func:`jaxgran.analysis.hoek_brown_fit`),
+    ``residual_line`` (:func:`jaxgran.analysis.frictional_line` of every test's residual p and
+    q) and the counts. With ``means`` every target p (and the unconfined tests) gives one
+    point, the mean over its realisations, as paper 002 fits the mean envelope (Fig. 21-22).
+    A fit that cannot be made is reported as ``<name>_error``."""
+    true = [v for v in shear if v.get("true_peak")]
+    u = np.asarray(list(unconfined_strengths), float)
+    p = np.array([v["p_at_peak_Pa"] for v in true] + list(0.5 * u))
+    q = np.array([v["q_peak_Pa"] for v in true] + list(0.5 * u))
+    if means:
+        target = np.array([v["p_target_Pa"] for v in true] + [0.0] * u.size)
+        levels = np.unique(target)
+        p = np.array([p[target == t].mean() for t in levels])
+        q = np.array([q[target == t].mean() for t in levels])
+        shear = [
+            {
+                "p_residual_Pa": np.mean(
+                    [v["p_residual_Pa"] for v in shear if v["p_target_Pa"] == t]
+                ),
+                "q_residual_Pa": np.mean(
+                    [v["q_residual_Pa"] for v in shear if v["p_target_Pa"] == t]
+                ),
+            }
+            for t in sorted({v["p_target_Pa"] for v in shear})
+        ]
+    out: dict = {"n_tests": len(shear), "n_true_peaks": len(true), "n_unconfined": int(u.size)}
+    for name, fit, args in (
+        ("hoek_brown", an.hoek_brown_fit_pq, (p, q)),
+        ("hoek_brown_s1s3", an.hoek_brown_fit, (p + q, p - q)),
+        (
+            "residual_line",
+            an.frictional_line,
+            ([v["p_residual_Pa"] for v in shear], [v["q_residual_Pa"] for v in shear]),
+        ),
+    ):
+        try:
+            out[name] = fit(*args)
+        except ValueError as exc:
+            out[name + "_error"] = str(exc)
+    return out
+
+
 # ------------------------------------------------------------------------------ run
 
 
@@ -444,7 +515,6 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         mean_std(per, "tension_")
         summary["E_t_Pa"] = summary.get("tension_modulus_Pa")
         curves["tension"] = res.realisation(0)
-    peaks = []
     if cfg.p_values:
         shear, iso, setup, members = isotropic_then_shear(
             cfg, seeds, cfg.p_values, progress=progress
@@ -470,22 +540,11 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
                 }
                 | {"p_Pa": float(p)}
             )
-        peaks = [(v["sigma_1_peak_Pa"], v["sigma_3_peak_Pa"]) for v in per]
         curves["shear"] = [shear.realisation(k) for k in range(shear.size)]
         summary.update(bd.pooled_bursts(curves["shear"]))
         first_run = (shear.realisation(0), setup.params)
-    s1 = np.array([a for a, _ in peaks] + list(ucs))
-    s3 = np.array([b for _, b in peaks] + [0.0] * len(ucs))
-    # Hoek-Brown describes confined compression: fit the peaks with s3 >= 0 (at low p the
-    # constant-p path drives s3 into tension); the fit to all peaks is reported beside it
-    for name, keep in (("hoek_brown", s3 >= 0.0), ("hoek_brown_all_peaks", s3 == s3)):
-        if keep.sum() >= 3:
-            try:
-                summary[name] = an.hoek_brown_fit(s1[keep], s3[keep])
-            except ValueError as exc:
-                summary[name + "_error"] = str(exc)
-        else:
-            summary[name + "_error"] = f"{int(keep.sum())} peaks, a fit needs 3"
+    if "shear" in summary:
+        summary.update(envelope_fits(summary["shear"], ucs))
     summary["wall_time_s"] = wall_time
     if first_run is None:
         raise ValueError("nothing to run: enable unconfined, tension or give p_values")

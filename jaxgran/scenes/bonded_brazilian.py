@@ -17,7 +17,11 @@ avalanche at the peak. With ``realisations = K > 1`` K discs of different Vorono
 under ``jax.vmap`` and every figure is reported as mean and standard deviation.
 
 :func:`sweep` runs the calibration curves of paper 002 Fig. 8 / Eq. 18 (sigma_t / B_n
-against B_n / B_t for several eps_th) as one vmapped batch over the parameters.
+against B_n / B_t for several eps_th) as one vmapped batch over the parameters (the bond
+moduli and thresholds are per-bond arrays of the stacked states), and
+:func:`sweep_stiffness` those of Fig. 9 / Eq. 19 (S / K_n against K_n / K_t for several
+B_n / B_t), where the contact law's :class:`jaxgran.state.Params` are stacked as well
+(``params_batched``).
 """
 
 from __future__ import annotations
@@ -172,12 +176,19 @@ def _stopper(cfg: Config, n_real: int, batched: bool):
     return callback
 
 
-def simulate_test(cfg: Config, *, progress: bool = False, setup: Setup | None = None):
-    """Run the test (all realisations); returns ``(EnsembleResult, Setup)``."""
+def simulate_test(
+    cfg: Config,
+    *,
+    progress: bool = False,
+    setup: Setup | None = None,
+    params_batched: bool = False,
+):
+    """Run the test (all realisations); returns ``(EnsembleResult, Setup)``. With
+    ``params_batched`` ``setup.params`` is stacked like the states (a contact-law sweep)."""
     setup = setup or build(cfg)
     k = len(setup.states)
     batched = k > 1
-    dt = float(setup.params.dt)
+    dt = float(np.max(np.asarray(setup.params.dt)))  # stacked when params_batched
     n_steps = int(math.ceil(cfg.max_strain / cfg.strain_rate / dt))
     if batched:
         state = ens.stack(setup.states)
@@ -193,6 +204,7 @@ def simulate_test(cfg: Config, *, progress: bool = False, setup: Setup | None = 
         record_every=cfg.record_every,
         records_per_segment=cfg.records_per_segment,
         batched=batched,
+        params_batched=params_batched,
         callback=_stopper(cfg, k, batched),
         frame_every=max(1, n_steps // (cfg.record_every * cfg.records_per_segment * 10)),
         progress=progress,
@@ -352,6 +364,65 @@ def sweep(
     if out_dir is not None:
         out["figure"] = str(_sweep_figure(out, Path(out_dir)))
     return out
+
+
+def sweep_stiffness(
+    cfg: Config,
+    kn_over_kt=(0.5, 1.0, 2.0, 4.0),
+    bn_over_bt=(1.0, 4.0),
+    *,
+    progress: bool = False,
+) -> dict:
+    """Calibration curves of paper 002 Fig. 9 / Eq. 19: the slope S / K_n against K_n / K_t
+    for each B_n / B_t, one disc (``cfg.seed``), every pair in one vmapped batch with the
+    contact law batched too (``params_batched``: K_t lives in :class:`Params`).
+
+    K_n and B_n stay at ``cfg``'s values; K_t = K_n / (K_n / K_t), B_t = B_n / (B_n / B_t).
+    All members share the smallest stable time step. Returns the grids, S / K_n (1/m) and
+    sigma_t / B_n ``[len(bn_over_bt), len(kn_over_kt)]``.
+    """
+    base = bd.material_from(cfg)
+    mats = [
+        dataclasses.replace(
+            base, b_t=base.b_n / rb, tangential_stiffness=base.normal_stiffness / rk
+        )
+        for rb in bn_over_bt
+        for rk in kn_over_kt
+    ]
+    setup = build(cfg, seeds=[cfg.seed], materials=mats)
+    dt = float(setup.params.dt)
+    skin = float(setup.params.skin)
+    # K_t enters the time-step bound through max(K_n, K_t)
+    dt = min(
+        [dt]
+        + [
+            bd.stable_dt(s.particles, s.bonds, m, cfg.dt_safety)
+            for s, m in zip(setup.states, mats, strict=True)
+        ]
+    )
+    setup.params = ens.stack([bd.make_bonded_params(m, dt, skin) for m in mats])
+    res, _ = simulate_test(
+        dataclasses.replace(cfg, realisations=len(mats)),
+        progress=progress,
+        setup=setup,
+        params_batched=True,
+    )
+    slope = np.full((len(bn_over_bt), len(kn_over_kt)), np.nan)
+    sig = np.full_like(slope, np.nan)
+    for k in range(res.size):
+        m = measure(res.realisation(k), setup.gap0[k], cfg.diameter, mats[k])
+        b, r = divmod(k, len(kn_over_kt))
+        slope[b, r] = m.get("slope_S_over_k_n_per_m", np.nan)
+        sig[b, r] = m["tensile_strength_over_b_n"]
+    return {
+        "ratios_k_n_over_k_t": list(map(float, kn_over_kt)),
+        "ratios_b_n_over_b_t": list(map(float, bn_over_bt)),
+        "slope_S_over_k_n_per_m": slope.tolist(),
+        "tensile_strength_over_b_n": sig.tolist(),
+        "dt_s": dt,
+        "steps": int(res.steps),
+        "wall_time_s": float(res.wall_time_s),
+    }
 
 
 # ------------------------------------------------------------------------------ figures
