@@ -51,16 +51,30 @@ def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
     assert s["n_events"] >= 1
     # mass: final active mass = initial - sum of the events' losses (fines + erosion)
     assert s["mass_bookkeeping_error"] < 1e-12
-    assert 0.0 <= s["mass_lost_fraction"] < 0.1
+    # quick mode drops pieces under a tenth of the mean grain as fines; what local erosion
+    # takes (caps where neighbours overlap, rounded new corners) stays near 1 %
+    eroded = sum(float(e["eroded_mass"]) for e in brk.events) / info["initial_mass"]
+    assert 0.0 <= eroded < 0.02
     m0 = info["mean_initial_mass"]
     for ev in brk.events:
-        m_r = float(np.min(ev["fragment_masses"])) / m0
+        # pieces dropped as fines count as fragments of the mean fines mass (metrics docstring)
+        pieces = list(np.asarray(ev["fragment_masses"], float))
+        if ev["n_fines"] > 0:
+            pieces += [float(ev["fines_mass"]) / ev["n_fines"]] * int(ev["n_fines"])
+        m_r = min(pieces) / m0
         want = "splitting" if m_r > 0.4 else "fragmentation" if m_r >= 0.1 else "chipping"
-        if ev["n_fines"] == 0:
-            assert metrics.event_breakage_type(ev, m0) == want
+        assert metrics.event_breakage_type(ev, m0) == want
         assert np.asarray(ev["planes"]).shape[0] == 1  # split-cell: one plane
     assert len(s["ke_spikes"]) == s["n_events"]
     assert s["snapshot_times_s"][0] == 0.0 and len(s["snapshot_times_s"]) == 4
     rel = oc.relative_mass(load.series["time"], brk.events, info["initial_mass"])
     assert rel[-1] == pytest.approx(1.0 - s["mass_lost_fraction"])
     assert np.all(np.diff(rel) <= 0)
+    # adaptive time step: never above safety x the limit of the lightest particle present
+    from jaxgran.integrate import critical_time_step
+
+    limit = critical_time_step(load.state.particles, load.params)
+    assert s["dt_final_s"] <= cfg.dt_safety * limit * (1 + 1e-12)
+    assert s["dt_final_s"] <= s["dt_s"]
+    segment = cfg.record_every * cfg.records_per_segment * s["dt_s"]
+    assert abs(s["load_time_s"] - cfg.load_time) <= segment

@@ -17,7 +17,6 @@ The full test is ~1e6 steps of ~600 grains: a GPU job; ``--quick`` is a 30 cm wi
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -64,7 +63,7 @@ class Config:
     calibration_force: float = 150.79  # N (paper 000 §III)
     calibration_radius: float = 0.01  # m
     min_fragment_fraction: float = 0.05
-    dt_safety: float = 0.3
+    dt_safety: float = 0.15  # see oedometer_cantor.Config.dt_safety
     settle_time: float = 1.5  # s
     settle_ke_ratio: float = 1.0e-4
     bar_gap: float = 1.0e-3  # m
@@ -117,10 +116,7 @@ def build(cfg: Config):
     parts = particles_from_polygons(cells(cfg), cfg.sphero_radius, cfg.areal_density)
     m_mean = float(np.asarray(parts.mass).mean())
     params = contact_params(cfg, m_mean, poisson_ratio=cfg.poisson_ratio)
-    m_rot = 0.25 * cfg.min_fragment_fraction * m_mean
-    params = replace(
-        params, dt=jnp.asarray(cfg.dt_safety * math.sqrt(2.0 * m_rot / cfg.normal_stiffness))
-    )
+    params = replace(params, dt=jnp.asarray(oc.adaptive_dt(parts, params, cfg.dt_safety)))
     check_time_step(parts, params)
     pos = np.asarray(parts.pos)
     rmax = float(np.asarray(parts.bound_radius).max())
