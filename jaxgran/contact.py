@@ -22,6 +22,8 @@ advanced by ``v_t dt``.
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -219,12 +221,55 @@ def _soa_world(p: Particles):
     return wx, wy, _frames_soa(wx, wy, p.n_verts)
 
 
-def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, damp_velocity):
-    """Contact forces of a block of pairs ``[c, 2]`` with history ``[2, c, 2, V]``.
+def _compact(flags: Array, size: int) -> tuple[Array, Array]:
+    """Indices of the true entries of the flat bool array ``flags`` in ascending order, padded
+    with ``flags.size`` to ``size`` entries (``jnp.nonzero(flags, size=size)``), and their
+    count. The prefix sum comes from triangular matmuls over blocks of 128 (exact in floats
+    for fewer than 2^24 entries): XLA's CPU cumsum over 10^5-10^6 entries costs a few ms, a
+    sizeable part of a contact step."""
+    n = flags.shape[0]
+    count = jnp.sum(flags)
+    if n >= 2**24:
+        return jnp.nonzero(flags, size=size, fill_value=n)[0], count
+    w = 128
+    x = jnp.pad(flags.astype(jnp.float32), (0, (-n) % w)).reshape(-1, w)
+    tri = jnp.triu(jnp.ones((w, w), jnp.float32))
+    inner = x @ tri  # inclusive prefix sum inside each block
+    tot = inner[:, -1]
+    r = tot.shape[0]
+    t2 = jnp.pad(tot, (0, (-r) % w)).reshape(-1, w) @ tri
+    off2 = jnp.cumsum(t2[:, -1]) - t2[:, -1]
+    start = (t2 + off2[:, None]).reshape(-1)[:r] - tot  # exclusive offset of each block
+    rank = (inner + start[:, None]).reshape(-1)[:n].astype(jnp.int32) - 1
+    target = jnp.where(flags, rank, size)
+    out = (
+        jnp.full((size,), n, jnp.int32).at[target].set(jnp.arange(n, dtype=jnp.int32), mode="drop")
+    )
+    return out, count
 
-    Returns the force and torque on the first and second body of every pair
-    (``[c, 2]``, ``[c, 2]``, ``[c]``, ``[c]``), the new history and per-contact data."""
+
+def _spread(a: Array, slot: Array, shape: tuple) -> Array:
+    """Values ``a [K, ...]`` of the compacted list back in the slot layout ``shape + ...``
+    (zeros where no slot touches)."""
+    n = math.prod(shape)
+    out = jnp.zeros((n,) + a.shape[1:], a.dtype).at[slot].set(a, mode="drop")
+    return out.reshape(shape + a.shape[1:])
+
+
+def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, damp_velocity):
+    """Contact forces of the pairs ``[C, 2]`` with history ``[2, C, 2, V]``.
+
+    The closest-feature geometry is evaluated for every (pair, direction, vertex) slot, but
+    only a few slots touch (about two per touching pair out of ``2 V``), so the slots in
+    contact are compacted into a list of ``2 C`` entries (:func:`jnp.nonzero` with a fixed
+    size) and the contact law, lever arms and relative velocities run on that list only. The
+    list is full when more than ``2 C`` slots touch: ``overflow`` is then set and the host
+    grows the pair capacity (so the list) and repeats the segment, as for a full pair list.
+
+    Returns the force ``[P, 2]`` and torque ``[P]`` on every particle, the new history, the
+    overflow flag and per-contact data in the slot layout ``[C, 2, V]``."""
     n_p = p.pos.shape[0]
+    n_c, n_v = pairs.shape[0], p.verts.shape[1]
     wx, wy, frames = world
     pair_ok = pairs[:, 0] < n_p
     i = jnp.where(pair_ok, pairs[:, 0], 0)
@@ -232,35 +277,47 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
     gap, (nx, ny), (qx, qy), keep = _pair_geometry_soa(wx, wy, p.n_verts, frames, i, j)
     owner = jnp.stack([i, j], axis=1)  # [c, 2] body whose vertex is tested
     other = jnp.stack([j, i], axis=1)
-    r_oth = p.radius[other][..., None]
-    overlap = p.radius[owner][..., None] + r_oth - gap
+    overlap = (p.radius[owner] + p.radius[other])[..., None] - gap
     both_active = (pair_ok & p.active[i] & p.active[j])[:, None, None]
     act = keep & (overlap > 0) & both_active
+
+    # compaction: the touching slots, in slot order (so results do not depend on capacity)
+    n_slots = act.size
+    cap = 2 * n_c
+    slot, n_touch = _compact(act.reshape(-1), cap)
+    ok = slot < n_slots
+    at = jnp.minimum(slot, n_slots - 1)
+    take = lambda a: a.reshape(-1)[at]
+    c_of = at // (2 * n_v)
+    first = (at // n_v) % 2 == 0
+    own = jnp.where(first, i[c_of], j[c_of])
+    oth = jnp.where(first, j[c_of], i[c_of])
+    ov, cnx, cny = take(overlap), take(nx), take(ny)
+    r_oth = p.radius[oth]
     # contact point: middle of the overlap, measured from the other body's core
-    off = r_oth - 0.5 * overlap
-    xcx, xcy = qx + off * nx, qy + off * ny
+    off = r_oth - 0.5 * ov
+    xcx, xcy = take(qx) + off * cnx, take(qy) + off * cny
     inv_m = jnp.where(p.fixed, 0.0, 1.0 / p.mass)
-    m_eff = 1.0 / jnp.maximum(inv_m[owner] + inv_m[other], _TINY)
-    m_eff = jnp.broadcast_to(m_eff[..., None], overlap.shape)
-    g = lambda a, idx: a[idx][..., None]
-    rox, roy = xcx - g(p.pos[:, 0], owner), xcy - g(p.pos[:, 1], owner)
-    rtx, rty = xcx - g(p.pos[:, 0], other), xcy - g(p.pos[:, 1], other)
+    m_eff = 1.0 / jnp.maximum(inv_m[own] + inv_m[oth], _TINY)
+    rox, roy = xcx - p.pos[own, 0], xcy - p.pos[own, 1]
+    rtx, rty = xcx - p.pos[oth, 0], xcy - p.pos[oth, 1]
 
     def rel_vel(vel, omega):
-        wo, wt = g(omega, owner), g(omega, other)
-        vx = g(vel[:, 0], owner) - wo * roy - g(vel[:, 0], other) + wt * rty
-        vy = g(vel[:, 1], owner) + wo * rox - g(vel[:, 1], other) - wt * rtx
+        wo, wt = omega[own], omega[oth]
+        vx = vel[own, 0] - wo * roy - vel[oth, 0] + wt * rty
+        vy = vel[own, 1] + wo * rox - vel[oth, 1] - wt * rtx
         return vx, vy
 
     v_rel = rel_vel(p.vel, p.omega)
     v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
-    (fx, fy), xi_new, fn = contact_law(
-        overlap,
-        (nx, ny),
+    flat_xi = xi.reshape(2, -1)
+    (fx, fy), (xx, xy), fn = contact_law(
+        ov,
+        (cnx, cny),
         v_rel,
-        (xi[0], xi[1]),
+        (flat_xi[0, at], flat_xi[1, at]),
         m_eff,
-        act,
+        ok,
         params.normal_stiffness,
         params.tangential_stiffness,
         params.normal_damping,
@@ -269,19 +326,26 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
         params.dt,
         v_damp=v_damp,
     )
-    t_own = (rox * fy - roy * fx).sum(axis=2)  # [c, 2 dir]
-    t_oth = -(rtx * fy - rty * fx).sum(axis=2)
-    f_own = jnp.stack([fx.sum(axis=2), fy.sum(axis=2)], axis=-1)  # [c, 2 dir, 2]
-    f_i = f_own[:, 0] - f_own[:, 1]
-    t_i = t_own[:, 0] + t_oth[:, 1]
-    t_j = t_own[:, 1] + t_oth[:, 0]
+    dtype = fx.dtype
+    force = jnp.stack([fx, fy], axis=-1)
+    f = jnp.zeros((n_p, 2), dtype).at[own].add(force).at[oth].add(-force)
+    t = (
+        jnp.zeros((n_p,), dtype)
+        .at[own]
+        .add(rox * fy - roy * fx)
+        .at[oth]
+        .add(-(rtx * fy - rty * fx))
+    )
+    xi_new = jnp.zeros_like(flat_xi).at[:, slot].set(jnp.stack([xx, xy]), mode="drop")
+
+    spread = lambda a: _spread(a, slot, act.shape)
     info = {
-        "point": jnp.stack([xcx, xcy], axis=-1),
-        "force": jnp.stack([fx, fy], axis=-1),
+        "point": spread(jnp.stack([xcx, xcy], axis=-1)),
+        "force": spread(force),
         "active": act,
-        "normal_force": fn,
+        "normal_force": spread(fn),
     }
-    return (i, j, f_i, t_i, t_j), jnp.stack(xi_new), info
+    return (f, t), xi_new.reshape(xi.shape), n_touch > cap, info
 
 
 def pair_forces(
@@ -295,29 +359,40 @@ def pair_forces(
     Returns:
         force ``[P, 2]`` (N), torque ``[P]`` (N m), new tangential history ``[2, C, 2, V]``,
         and per-contact data (``point [C,2,V,2]``, ``force`` on the vertex owner
-        ``[C,2,V,2]``, ``active [C,2,V]``, ``normal_force``) for post-processing (force
-        chains, BEM loading); under jit, unused outputs cost nothing.
+        ``[C,2,V,2]``, ``active [C,2,V]``, ``normal_force``, and ``overflow``: more vertex
+        contacts than the compacted list of ``2 C`` holds, see :func:`_pair_kernel`) for
+        post-processing (force chains, BEM loading); under jit, unused outputs cost nothing.
     """
-    n_p = p.pos.shape[0]
-    (i, j, f_i, t_i, t_j), xi, info = _pair_kernel(
+    (f, t), xi, overflow, info = _pair_kernel(
         p, _soa_world(p), contacts.pairs, contacts.xi, params, damp_velocity
     )
-    f = jnp.zeros((n_p, 2), f_i.dtype).at[i].add(f_i).at[j].add(-f_i)
-    t = jnp.zeros((n_p,), t_i.dtype).at[i].add(t_i).at[j].add(t_j)
-    return f, t, xi, info
+    return f, t, xi, info | {"overflow": overflow}
 
 
-def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp_velocity=None):
+def wall_forces(
+    p: Particles,
+    walls: Walls,
+    wall_xi: Array,
+    params: Params,
+    damp_velocity=None,
+    capacity: int | None = None,
+):
     """Forces between particle vertices (discs of radius ``radius``) and planar walls.
 
+    ``capacity``: length of the compacted list of touching (particle, wall, vertex) slots on
+    which the contact law runs (static; default: all ``P W V`` slots, never full). The step
+    passes twice the pair capacity, so a full list (``overflow`` in the returned data) is
+    grown with the pair list by the host.
+
     Returns force ``[P, 2]`` (N), torque ``[P]`` (N m), new history ``[2, P, W, V]``, force on
-    each wall ``[W, 2]`` (N), and per-contact data (``point``/``force`` ``[P, W, V, 2]``).
+    each wall ``[W, 2]`` (N), and per-contact data (``point``/``force`` ``[P, W, V, 2]``,
+    ``active``, ``normal_force`` ``[P, W, V]``, ``overflow``).
     """
     c, s = jnp.cos(p.angle)[:, None], jnp.sin(p.angle)[:, None]
     bx, by = p.verts[..., 0], p.verts[..., 1]
     wx = (c * bx - s * by + p.pos[:, 0:1])[:, None, :]  # [P, 1, V]
     wy = (s * bx + c * by + p.pos[:, 1:2])[:, None, :]
-    n_v = wx.shape[-1]
+    n_p, n_w, n_v = wx.shape[0], walls.point.shape[0], wx.shape[-1]
     e = lambda a: a[None, :, None]  # wall array [W] -> [1, W, 1]
     nx, ny = e(walls.normal[:, 0]), e(walls.normal[:, 1])
     relx, rely = wx - e(walls.point[:, 0]), wy - e(walls.point[:, 1])
@@ -325,32 +400,36 @@ def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp
     s_t = -relx * ny + rely * nx
     inside = (s_t >= e(walls.extent[:, 0])) & (s_t <= e(walls.extent[:, 1]))
     vert_ok = (jnp.arange(n_v)[None, :] < p.n_verts[:, None])[:, None, :]
-    rad = p.radius[:, None, None]
-    overlap = rad - gap
+    overlap = p.radius[:, None, None] - gap
     act = inside & vert_ok & (overlap > 0) & p.active[:, None, None] & e(walls.active)
-    off = rad - 0.5 * overlap
-    xcx, xcy = wx - off * nx, wy - off * ny
-    rx, ry = xcx - p.pos[:, 0, None, None], xcy - p.pos[:, 1, None, None]
-    shape = overlap.shape
-    nxb, nyb = jnp.broadcast_to(nx, shape), jnp.broadcast_to(ny, shape)
+
+    # the contact law runs on the touching slots only (see _pair_kernel)
+    n_slots = act.size
+    cap = n_slots if capacity is None else min(int(capacity), n_slots)
+    slot, n_touch = _compact(act.reshape(-1), cap)
+    ok = slot < n_slots
+    at = jnp.minimum(slot, n_slots - 1)
+    pi, wi, vi = at // (n_w * n_v), (at // n_v) % n_w, at % n_v
+    ov = overlap.reshape(-1)[at]
+    cnx, cny = walls.normal[wi, 0], walls.normal[wi, 1]
+    off = p.radius[pi] - 0.5 * ov
+    xcx, xcy = wx[pi, 0, vi] - off * cnx, wy[pi, 0, vi] - off * cny
+    rx, ry = xcx - p.pos[pi, 0], xcy - p.pos[pi, 1]
 
     def rel_vel(vel, omega):
-        w = omega[:, None, None]
-        return (
-            vel[:, 0, None, None] - w * ry - e(walls.vel[:, 0]),
-            vel[:, 1, None, None] + w * rx - e(walls.vel[:, 1]),
-        )
+        w = omega[pi]
+        return vel[pi, 0] - w * ry - walls.vel[wi, 0], vel[pi, 1] + w * rx - walls.vel[wi, 1]
 
     v_rel = rel_vel(p.vel, p.omega)
     v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
-    m_eff = jnp.broadcast_to(p.mass[:, None, None], shape)
-    (fx, fy), xi, fn = contact_law(
-        overlap,
-        (nxb, nyb),
+    flat_xi = wall_xi.reshape(2, -1)
+    (fx, fy), (xx, xy), fn = contact_law(
+        ov,
+        (cnx, cny),
         v_rel,
-        (wall_xi[0], wall_xi[1]),
-        m_eff,
-        act,
+        (flat_xi[0, at], flat_xi[1, at]),
+        p.mass[pi],
+        ok,
         params.normal_stiffness,
         params.tangential_stiffness,
         params.normal_damping,
@@ -359,16 +438,21 @@ def wall_forces(p: Particles, walls: Walls, wall_xi: Array, params: Params, damp
         params.dt,
         v_damp=v_damp,
     )
-    f = jnp.stack([fx.sum(axis=(1, 2)), fy.sum(axis=(1, 2))], axis=-1)
-    t = (rx * fy - ry * fx).sum(axis=(1, 2))
-    on_wall = -jnp.stack([fx.sum(axis=(0, 2)), fy.sum(axis=(0, 2))], axis=-1)
+    force = jnp.stack([fx, fy], axis=-1)
+    f = jnp.zeros((n_p, 2), fx.dtype).at[pi].add(force)
+    t = jnp.zeros((n_p,), fx.dtype).at[pi].add(rx * fy - ry * fx)
+    on_wall = -jnp.zeros((n_w, 2), fx.dtype).at[wi].add(force)
+    xi = jnp.zeros_like(flat_xi).at[:, slot].set(jnp.stack([xx, xy]), mode="drop")
+
+    spread = lambda a: _spread(a, slot, act.shape)
     info = {
-        "point": jnp.stack([xcx, xcy], axis=-1),
-        "force": jnp.stack([fx, fy], axis=-1),
+        "point": spread(jnp.stack([xcx, xcy], axis=-1)),
+        "force": spread(force),
         "active": act,
-        "normal_force": fn,
+        "normal_force": spread(fn),
+        "overflow": n_touch > cap,
     }
-    return f, t, jnp.stack(xi), on_wall, info
+    return f, t, xi.reshape(wall_xi.shape), on_wall, info
 
 
 def restitution_of_damping(zeta: float) -> float:

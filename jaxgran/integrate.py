@@ -17,7 +17,9 @@ from jax import Array
 from .contact import pair_forces, wall_forces
 from .partition import build_pairs, needs_rebuild
 from .state import (
+    ERR_CONTACT_OVERFLOW,
     ERR_NAN,
+    ERR_PAIR_OVERFLOW,
     ERR_SKIN_EXCEEDED,
     WALL_SERVO,
     WALL_VELOCITY,
@@ -140,8 +142,12 @@ def step(
 
     # dashpots see the end-of-step velocity predicted with the old force (second order)
     damp = (vel + 0.5 * dt * p.force * inv_m[:, None], omega + 0.5 * dt * p.torque * inv_i)
-    f_pp, t_pp, xi, _ = pair_forces(p, contacts, params, damp)
-    f_w, t_w, wall_xi, on_wall, _ = wall_forces(p, walls, contacts.wall_xi, params, damp)
+    f_pp, t_pp, xi, pinfo = pair_forces(p, contacts, params, damp)
+    errors = errors | _contact_overflow(pinfo)
+    f_w, t_w, wall_xi, on_wall, winfo = wall_forces(
+        p, walls, contacts.wall_xi, params, damp, capacity=2 * contacts.capacity
+    )
+    errors = errors | _contact_overflow(winfo)
     gravity = jnp.where(p.active[:, None], p.mass[:, None] * params.gravity[None, :], 0.0)
     force = f_pp + f_w + gravity
     torque = t_pp + t_w
@@ -174,13 +180,24 @@ def step(
     return new, errors.astype(jnp.int32)
 
 
+def _contact_overflow(info) -> Array:
+    """Error bits of a full compacted contact list (grown with the pair capacity)."""
+    return jnp.where(info["overflow"], ERR_CONTACT_OVERFLOW | ERR_PAIR_OVERFLOW, 0).astype(
+        jnp.int32
+    )
+
+
 def initial_forces(state: SimState, params: Params, grid: Grid) -> tuple[SimState, Array]:
     """Build the pair list and evaluate forces for the current positions (no motion), so
     the first Verlet kick uses consistent forces."""
     p = state.particles
     contacts, errors = build_pairs(p, state.contacts, params.skin, grid)
-    f_pp, t_pp, xi, _ = pair_forces(p, contacts, params)
-    f_w, t_w, wall_xi, on_wall, _ = wall_forces(p, state.walls, contacts.wall_xi, params)
+    f_pp, t_pp, xi, pinfo = pair_forces(p, contacts, params)
+    errors = errors | _contact_overflow(pinfo)
+    f_w, t_w, wall_xi, on_wall, winfo = wall_forces(
+        p, state.walls, contacts.wall_xi, params, capacity=2 * contacts.capacity
+    )
+    errors = errors | _contact_overflow(winfo)
     gravity = jnp.where(p.active[:, None], p.mass[:, None] * params.gravity[None, :], 0.0)
     # springs start from zero: the evaluation above only primes them with v_t dt
     del xi, wall_xi

@@ -27,12 +27,16 @@ ERR_PAIR_OVERFLOW = 2
 ERR_NAN = 4
 ERR_LEFT_DOMAIN = 8
 ERR_SKIN_EXCEEDED = 16
+# more touching vertex slots than the compacted contact list (2 x pair capacity) holds; it is
+# always raised together with ERR_PAIR_OVERFLOW, so every host loop grows the pair capacity
+ERR_CONTACT_OVERFLOW = 32
 ERROR_NAMES = {
     ERR_CELL_OVERFLOW: "cell capacity exceeded",
     ERR_PAIR_OVERFLOW: "pair capacity exceeded",
     ERR_NAN: "NaN or inf in the state",
     ERR_LEFT_DOMAIN: "a particle left the domain",
     ERR_SKIN_EXCEEDED: "a particle moved more than half the Verlet skin in one step",
+    ERR_CONTACT_OVERFLOW: "vertex contacts exceed the compacted list (2 x pair capacity)",
 }
 
 WALL_FIXED = 0

@@ -141,3 +141,19 @@ def test_pair_forces_are_nan_free_with_padding_and_touching():
     state, _ = prepare(state, params, grid)
     f, t, xi, info = pair_forces(state.particles, state.contacts, params)
     assert np.all(np.isfinite(f)) and np.all(np.isfinite(t)) and np.all(np.isfinite(xi))
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.05, 0.5, 1.0])
+def test_compaction_matches_nonzero(fraction):
+    """The matmul prefix sum that compacts the touching slots is exact: the same indices as
+    jnp.nonzero, in order, padded with the size sentinel, and the full count even when the
+    list is too short (the overflow the host grows on)."""
+    from jaxgran.contact import _compact
+
+    rng = np.random.default_rng(1)
+    flags = jnp.asarray(rng.random(5000) < fraction)
+    size = 300
+    idx, count = _compact(flags, size)
+    want = jnp.nonzero(flags, size=size, fill_value=flags.size)[0]
+    np.testing.assert_array_equal(np.asarray(idx), np.asarray(want))
+    assert int(count) == int(np.sum(np.asarray(flags)))

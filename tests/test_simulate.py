@@ -243,3 +243,26 @@ def test_servo_wall_holds_target_stress_and_bar_moves_at_its_velocity():
     pts = res.series["wall_point"][:, 4]
     t = res.series["time"]
     assert (pts[-1, 1] - pts[0, 1]) / (t[-1] - t[0]) == pytest.approx(0.01, rel=1e-9)
+
+
+def test_full_contact_list_grows_with_the_pair_capacity():
+    """A square pressed into a box corner touches the floor and the wall with three vertex
+    slots; with a pair capacity of 1 the compacted contact list (2 x pair capacity) is full,
+    the host grows it and the run equals one with ample capacity."""
+    side, r = 0.01, 5e-4
+    core = np.array([[0, 0], [side, 0], [side, side], [0, side]], float) + r - 1e-5
+    parts = particles_from_polygons([core], r, RHO)
+    params = make_params(normal_stiffness=2e4, tangential_stiffness=1e4, friction=0.3)
+    params = replace(params, dt=jnp.asarray(0.2 * stable_time_step(parts, params)))
+    walls = make_walls(box_walls((0.0, 0.0), (0.05, 0.05)))
+    grid = make_grid((-0.01, -0.01), (0.06, 0.06), float(parts.bound_radius[0]), 2e-3)
+    kw = dict(n_steps=200, record_every=50, records_per_segment=2, progress=False)
+    small = simulate(make_state(parts, walls, pair_capacity=1), params, grid, **kw)
+    ample = simulate(make_state(parts, walls, pair_capacity=64), params, grid, **kw)
+    assert any("pair capacity 1 exceeded" in msg for msg in small.regrows)
+    assert not ample.regrows
+    np.testing.assert_allclose(
+        np.asarray(small.state.particles.pos), np.asarray(ample.state.particles.pos), atol=1e-12
+    )
+    # the overlapped side wall pushes the square out
+    assert float(small.state.particles.pos[0, 0]) > float(parts.pos[0, 0])
