@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -191,9 +192,22 @@ def _frames_soa(wx, wy, n_verts):
     return ty, -tx, tx, ty, jnp.where(real, length, 0.0)
 
 
+def _materialise(arrays: tuple) -> tuple:
+    """The same arrays, computed once into memory. Without this XLA's CPU backend fuses the
+    per-particle world vertices and edge frames (rotation, sqrt, division) into every gather
+    of their per-pair copies and recomputes them per gathered element, which cost about 40 %
+    of a contact step. A product with the identity is a library call that fusion does not
+    enter (an optimization barrier is removed before fusion on CPU); it is exact."""
+    stacked = jnp.stack(arrays)
+    eye = jnp.eye(len(arrays), dtype=stacked.dtype)
+    out = jnp.einsum("k...,kl->l...", stacked, eye, precision=jax.lax.Precision.HIGHEST)
+    return out[0], out[1], tuple(out[2:])
+
+
 def _pair_geometry_soa(wx, wy, nv, frames, i, j):
     """Both directions for pairs (i, j): i's vertices on j, then j's on i, stacked on a
     direction axis ``[C, 2, V]``; vertex-vertex contacts kept once (mutual, direction 0)."""
+    wx, wy, frames = _materialise((wx, wy) + tuple(frames))
     fi = tuple(f[i] for f in frames)
     fj = tuple(f[j] for f in frames)
     xi_, yi_, ni = wx[i], wy[i], nv[i]
