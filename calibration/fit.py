@@ -210,7 +210,7 @@ def build_labs(
         if not mine:
             raise ValueError(f"scene {scene} was asked for but no target belongs to it")
         cfg, opts = _scene_config(scene, scene_options.get(scene, {}))
-        cfg = _with_material(cfg, log_p)
+        cfg = lt.material_with(cfg, log_p)
         opts.setdefault("surrogate_width", surrogate_width)
         if scene == "bonded-brazilian":
             labs[scene] = lt.brazilian_lab(cfg, seeds, **opts)
@@ -232,13 +232,14 @@ def common_time_step(scene: str, overrides: dict, materials: list[dict], seed: i
     """The smallest default time step (s) of ``scene`` (with ``overrides``) over the group
     values of ``materials``: give it to every lab (lab option ``dt``) that must share one
     time discretisation, e.g. a synthetic twin's truth and fit."""
+    from jaxgran import labtests as lt
     from jaxgran.scenes import bonded_biaxial as bx
     from jaxgran.scenes import bonded_brazilian as bz
 
     cfg, _ = _scene_config(scene, overrides)
     dts = []
     for m in materials:
-        c = _with_material(cfg, np.asarray(groups_to_log_params(groups_from_values(m))))
+        c = lt.material_with(cfg, np.asarray(groups_to_log_params(groups_from_values(m))))
         if scene == "bonded-brazilian":
             dts.append(float(bz.build(c, seeds=[seed]).params.dt))
         else:
@@ -269,19 +270,6 @@ def _peak_widths(labs: dict, targets: list[Target], scene_options: dict) -> dict
             w[1] = frac("bonded-biaxial") * float(np.mean(qs))
         out["bonded-biaxial"] = replace(lab, peak_width=lab.peak_width * 0 + w)
     return out
-
-
-def _with_material(cfg, log_p):
-    v = np.exp(np.asarray(log_p, float))
-    return dataclasses.replace(
-        cfg,
-        normal_stiffness=float(v[0]),
-        tangential_stiffness=float(v[1]),
-        b_n=float(v[2]),
-        b_t=float(v[3]),
-        eps_th=float(v[4]),
-        friction=float(v[5]),
-    )
 
 
 def figure_values(figs: dict, labs: dict, targets: list[Target]):

@@ -110,7 +110,8 @@ def log_params(material: bd.Material) -> Array:
 
 
 def material_with(material: bd.Material, log_p) -> bd.Material:
-    """``material`` with the six micro-parameters of ``log_p`` (host values)."""
+    """``material`` (a :class:`jaxgran.scenes.bonded.Material`, or any scene config with the
+    same fields) with the six micro-parameters of ``log_p`` (host values)."""
     v = np.exp(np.asarray(log_p, float))
     return dataclasses.replace(
         material,
