@@ -676,6 +676,19 @@ def linearity(strain, stress, upto: float = 0.9) -> dict:
     return out
 
 
+def run_facts(res, setup: Setup, cfg) -> dict:
+    """What every single-test interface scene reports about the run itself: bond model,
+    particle kind, particle count, time step (s), steps and wall time (s)."""
+    return {
+        "bond": cfg.bond,
+        "particles": cfg.particles,
+        "n_particles": setup.spec.n_particles,
+        "dt_s": float(setup.params.dt),
+        "steps": int(res.steps),
+        "wall_time_s": float(res.wall_time_s),
+    }
+
+
 def finish(out_dir, summary: dict, figures: list) -> dict:
     """Add the scene's own figures to ``summary`` and rewrite summary.json."""
     from pathlib import Path

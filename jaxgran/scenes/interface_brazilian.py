@@ -29,15 +29,6 @@ QUICK = dict(pc.QUICK)
 def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
     res, setup = pc.simulate_test(cfg, progress=progress)
     summary = pc.measure(res, setup, cfg)
-    summary.update(
-        {
-            "bond": cfg.bond,
-            "particles": cfg.particles,
-            "n_particles": setup.spec.n_particles,
-            "dt_s": float(setup.params.dt),
-            "steps": int(res.steps),
-            "wall_time_s": float(res.wall_time_s),
-        }
-    )
+    summary.update(si.run_facts(res, setup, cfg))
     summary = write_outputs(out_dir, SCENE, cfg, res.realisation(0), setup.params, summary, vtk=vtk)
     return si.finish(out_dir, summary, pc.figures(res, setup, cfg, summary, Path(out_dir)))

@@ -265,17 +265,8 @@ def measure(res, setup: si.Setup, cfg: Config) -> dict:
 def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
     res, setup = simulate_test(cfg, progress=progress)
     summary = measure(res, setup, cfg)
-    summary.update(
-        {
-            "bond": cfg.bond,
-            "particles": cfg.particles,
-            "n_particles": setup.spec.n_particles,
-            "n_interfaces": setup.spec.n_bonds,
-            "dt_s": float(setup.params.dt),
-            "steps": int(res.steps),
-            "wall_time_s": float(res.wall_time_s),
-        }
-    )
+    summary.update(si.run_facts(res, setup, cfg))
+    summary["n_interfaces"] = setup.spec.n_bonds
     summary.update(si.steady_rate(res, setup.spec.n_particles, cfg))
     summary = write_outputs(out_dir, SCENE, cfg, res.realisation(0), setup.params, summary, vtk=vtk)
     return si.finish(out_dir, summary, figures(res, setup, cfg, summary, Path(out_dir)))

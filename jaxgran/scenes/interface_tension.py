@@ -101,16 +101,7 @@ def _gap0(setup: si.Setup) -> float:
 def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
     res, setup = simulate_test(cfg, progress=progress)
     summary = measure(res, setup, cfg)
-    summary.update(
-        {
-            "bond": cfg.bond,
-            "particles": cfg.particles,
-            "n_particles": setup.spec.n_particles,
-            "dt_s": float(setup.params.dt),
-            "steps": int(res.steps),
-            "wall_time_s": float(res.wall_time_s),
-        }
-    )
+    summary.update(si.run_facts(res, setup, cfg))
     summary.update(si.steady_rate(res, setup.spec.n_particles, cfg))
     r0 = res.realisation(0)
     summary = write_outputs(out_dir, SCENE, cfg, r0, setup.params, summary, vtk=vtk)

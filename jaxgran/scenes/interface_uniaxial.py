@@ -72,16 +72,7 @@ def measure(res, setup: si.Setup, cfg: Config) -> dict:
 def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
     res, setup = simulate_test(cfg, progress=progress)
     summary = measure(res, setup, cfg)
-    summary.update(
-        {
-            "bond": cfg.bond,
-            "particles": cfg.particles,
-            "n_particles": setup.spec.n_particles,
-            "dt_s": float(setup.params.dt),
-            "steps": int(res.steps),
-            "wall_time_s": float(res.wall_time_s),
-        }
-    )
+    summary.update(si.run_facts(res, setup, cfg))
     if cfg.with_tension:
         from . import interface_tension as tn
 
