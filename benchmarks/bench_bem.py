@@ -327,9 +327,13 @@ def main() -> None:
     lines += [
         f"Machine: {cpu_name()}, {os.cpu_count()} cores; jax {jax.__version__} "
         f"({jax.default_backend()}), XLA default threads, OPENBLAS_NUM_THREADS={blas}; "
-        f"{datetime.date.today().isoformat()}; load average at start {load[0]:.1f} (the "
-        f"machine is shared: timings are pessimistic and noisy). "
-        f"Command: `python benchmarks/bench_bem.py"
+        f"{datetime.date.today().isoformat()}; load average at start {load[0]:.1f}"
+        + (
+            " (other jobs were running: timings are pessimistic and noisy). "
+            if load[0] > 0.5 * (os.cpu_count() or 1)
+            else ". "
+        )
+        + "Command: `python benchmarks/bench_bem.py"
         + (f" --blas-threads {args.blas_threads}" if args.blas_threads is not None else "")
         + (f" --sections {args.sections}" if args.sections != "abc" else "")
         + "`.",

@@ -455,6 +455,36 @@ def test_build_operators_shapes_and_points(batch):
         np.testing.assert_allclose(anchor, np.broadcast_to(anchor[0], anchor.shape), atol=1e-15)
 
 
+def test_contact_element_lookup_matches_the_nearest_element(batch):
+    """The angular-sector lookup of a contact's element gives the element nearest to the
+    contact (brute force over all elements), and hat weights that reproduce its position."""
+    _, _, _, ops, *_ = batch
+    rng = np.random.default_rng(3)
+    nodes = np.asarray(ops.nodes)
+    P, N = nodes.shape[:2]
+    rows = np.arange(P - 1)  # the last slot is invalid
+    e = rng.integers(0, N, (P - 1, 50))
+    s = rng.random((P - 1, 50, 1))
+    a, b = nodes[rows[:, None], e], nodes[rows[:, None], (e + 1) % N]
+    cp = a + s * (b - a)
+    lo, w = jax.vmap(bem._assign_contacts)(
+        jnp.asarray(cp), ops.nodes[:-1], ops.centres[:-1], ops.node_angles[:-1]
+    )
+    lo, w = np.asarray(lo), np.asarray(w)
+    near = (lo == e) | ((lo + 1) % N == e)
+    assert near.all()
+    # the hat weight is the contact's arc-length position between the two midpoints
+    length = np.asarray(ops.lengths)[rows]  # [P', N]
+    start = np.cumsum(length, axis=1) - length
+    perim = length.sum(axis=1, keepdims=True)
+    arc = np.take_along_axis(start, e, 1) + s[..., 0] * np.take_along_axis(length, e, 1)
+    m_lo = np.take_along_axis(start + 0.5 * length, lo, 1)
+    m_hi = np.take_along_axis(start + 0.5 * length, (lo + 1) % N, 1)
+    m_hi = np.where(m_hi < m_lo, m_hi + perim, m_hi)
+    arc = np.where(arc < m_lo, arc + perim, arc)
+    np.testing.assert_allclose(w, (arc - m_lo) / (m_hi - m_lo), atol=1e-9)
+
+
 def test_sample_points_matches_batched_grid(batch):
     verts, n_verts, radius, ops, *_ = batch
     pts, ij = bem.sample_points(verts[1, : n_verts[1]], radius[1], 64, n_points=400)
