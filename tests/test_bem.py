@@ -456,8 +456,8 @@ def test_build_operators_shapes_and_points(batch):
 
 
 def test_contact_element_lookup_matches_the_nearest_element(batch):
-    """The angular-sector lookup of a contact's element gives the element nearest to the
-    contact (brute force over all elements), and hat weights that reproduce its position."""
+    """The angular-sector lookup puts each contact between the midpoints of the element that
+    holds it and a neighbour, with the hat weight of its arc-length position between them."""
     _, _, _, ops, *_ = batch
     rng = np.random.default_rng(3)
     nodes = np.asarray(ops.nodes)
