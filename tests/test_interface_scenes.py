@@ -96,14 +96,13 @@ def plate():
     return cfg, res, setup, pc.measure(res, setup, cfg)
 
 
-_PLATE_OPEN = pytest.mark.xfail(
-    run=False,
-    reason="issue 7 open: the quick 120-disc plate-contact specimen is crushed locally under "
-    "a plate and does not split; its 10 mm measurement circles scatter by +-100 %",
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 7 open: one packing of 120 discs is not a continuum on its axis; over 8 "
+    "seeds the middle-third axis stress is 0.77 +- 0.56 of the closed form, 0.98 +- 0.17 "
+    "over 4 seeds of 750 discs (benchmarks/plate_acceptance/resolution.json); seed 0 reads "
+    "1.65",
 )
-
-
-@_PLATE_OPEN
 def test_plate_contact_axis_stress_matches_the_disc_solution(plate):
     """Before the first element fails, the horizontal stress in the measurement circles of the
     middle third is the closed-form 2P / (pi D T) within 10 % (mean over those circles)."""
@@ -118,8 +117,22 @@ def test_plate_contact_axis_stress_matches_the_disc_solution(plate):
     assert sxx[np.argmax(np.abs(y))] < sxx[np.argmin(np.abs(y))]
 
 
-@_PLATE_OPEN
+def test_plate_contact_axis_is_in_tension_between_compressed_ends(plate):
+    """Before the first failure the loaded axis is in tension in its middle third and in
+    compression next to both plates, as in the disc solution."""
+    cfg, res, setup, m = plate
+    prof = m["axis_before_first_failure"]
+    y = np.asarray(prof["y_m"])
+    sxx = np.asarray(prof["sigma_xx_Pa"])
+    assert prof["force_N"] > 0.2 * m["force_max_N"]
+    assert sxx[np.abs(y) < cfg.diameter / 6].mean() > 0
+    assert sxx[np.argmin(y)] < 0 and sxx[np.argmax(y)] < 0
+
+
 def test_plate_contact_splits_the_disc_along_the_loading_axis(plate):
+    """The default specimen (seed 0) splits into two large fragments along the axis. Over 8
+    seeds, 4 do so (benchmarks/plate_acceptance/resolution.json); the others lose a cap or a
+    side piece."""
     cfg, res, setup, m = plate
     assert m["final_force_over_max"] < cfg.drop_fraction
     assert m["n_failed_tension"] > 0
@@ -129,3 +142,11 @@ def test_plate_contact_splits_the_disc_along_the_loading_axis(plate):
     f, _, _ = itf.interface_forces(res.state.particles, res.state.bonds, res.state.walls, 0.0)
     f = np.asarray(f)
     assert np.abs(f.sum(axis=0)).max() < 1e-9 * np.abs(f).max()
+
+
+def test_plate_contact_shear_failures_concentrate_under_the_plates(plate):
+    """The cone cores: the share of shear failures within D / 6 of a plate is well above the
+    share of all interface elements there."""
+    cfg, res, setup, m = plate
+    assert m["n_shear"] > 10
+    assert m["shear_share_near_plates"] > 1.5 * m["element_share_near_plates"]
