@@ -309,6 +309,30 @@ def cantilever(args) -> dict:
 # ------------------------------------------------------------------------------ Brazilian
 
 
+def brazilian_run(cfg, seed: int) -> dict:
+    """One bonded Brazilian disc (``cfg``, Voronoi ``seed``) to failure: the scene's measured
+    figures plus seed, steps, dt (s), wall time (s) and the burst sizes."""
+    from jaxgran import analysis as an
+    from jaxgran.scenes import bonded_brazilian as bz
+
+    t0 = time.perf_counter()
+    setup = bz.build(cfg, seeds=[seed])
+    res, _ = bz.simulate_test(cfg, setup=setup)
+    r = res.realisation(0)
+    m = bz.measure(r, setup.gap0[0], cfg.diameter, setup.material)
+    t = np.asarray(r.series["time"], float)
+    _, times = an.broken_bond_points(r.state)
+    counts, _ = an.burst_sizes(times, float(t[1] - t[0]))
+    m.update(
+        seed=seed,
+        steps=int(res.steps),
+        dt_s=float(setup.params.dt),
+        wall_time_s=time.perf_counter() - t0,
+        burst_sizes=counts[counts > 0].tolist(),
+    )
+    return m
+
+
 def brazilian(args) -> dict:
     """``--seeds`` discs of ``--cells`` cells one after another: sigma_t mean +- std, the
     crack angle, and the burst exponent pooled over all discs (discrete ML)."""
@@ -322,21 +346,7 @@ def brazilian(args) -> dict:
     for seed in range(args.seeds):
         path = raw / f"brazilian_c{args.cells}_s{seed}.json"
         if not path.exists() and not args.analyse_only:
-            t0 = time.perf_counter()
-            setup = bz.build(cfg, seeds=[seed])
-            res, _ = bz.simulate_test(cfg, setup=setup)
-            r = res.realisation(0)
-            m = bz.measure(r, setup.gap0[0], cfg.diameter, setup.material)
-            t = np.asarray(r.series["time"], float)
-            _, times = an.broken_bond_points(r.state)
-            counts, _ = an.burst_sizes(times, float(t[1] - t[0]))
-            m.update(
-                seed=seed,
-                steps=int(res.steps),
-                dt_s=float(setup.params.dt),
-                wall_time_s=time.perf_counter() - t0,
-                burst_sizes=counts[counts > 0].tolist(),
-            )
+            m = brazilian_run(cfg, seed)
             _dump(path, m)
             print(f"brazilian seed {seed}: {m['wall_time_s']:.0f} s", flush=True)
         if path.exists():
