@@ -5,18 +5,19 @@ of bonded discs or Voronoi cells, assembly, time step, loading and the Mohr-enve
 Table 1 was lost in extraction; the defaults are chosen for a high-strength gypsum / soft rock:
 density 2300 kg/m^3, element modulus ``E_c = 8 GPa`` (``k_n = E_c / L`` with L the centre
 distance, ``k_s = k_n / 2.5``), element tensile strength ``sigma_b = 10 MPa``, cohesion
-``c = 30 MPa``, residual friction ``mu_b = 0.5``, ultimate compressive strain off, 4 elements
-per interface, radius multiplier ``lambda = 1.5`` (disc interfaces 1.5 times as wide as the
-smaller disc's radius on each side). With these the 25 x 50 mm disc specimen (seed 0, 76
-discs) has a direct tensile strength of 2.98 MPa and an unconfined compressive strength of
-31.0 MPa, 10.4 times it, as for a gypsum. The unconfined strength is set by the interface
-width, not by the cohesion: with ``lambda = 1`` (sigma_b = 14 MPa) it was 16.4-16.5 MPa for
-c = 42-140 MPa, 5.9 times the tensile strength, and a residual friction of 1 instead of 0.5
-only raised that to 6.2; ``lambda = 1.5`` gave 9.4. The parallel-bond baseline keeps
-everything and swaps the envelope for the straight line ``c - sigma tan(phi)`` with
+``c = 30 MPa``, residual friction ``mu_b = 0.5``, ultimate compressive strain off, 4 elements per
+interface, radius multiplier ``lambda = 1.5`` (disc interfaces 1.5 times as wide as the smaller
+disc's radius on each side, so wider than that disc: PFC's flat joints default to 1; here it is
+the parameter that sets the ratio of compressive to tensile strength). With these the 25 x 50 mm
+disc specimen (seed 0, 76 discs) has a direct tensile strength of 2.98 MPa and an unconfined
+compressive strength of 31.0 MPa, 10.4 times it, as for a gypsum. The unconfined strength is set
+by the interface width, not by the cohesion: with ``lambda = 1`` (sigma_b = 14 MPa) it was
+16.4-16.5 MPa for c = 42-140 MPa, 5.9 times the tensile strength, and a residual friction of 1
+instead of 0.5 only raised that to 6.2; ``lambda = 1.5`` gave 9.4. The parallel-bond baseline
+keeps everything and swaps the envelope for the straight line ``c - sigma tan(phi)`` with
 ``phi = 41 deg``: the secant of the parabola between ``sigma = 0`` and ``sigma = -5 sigma_b``
-(``tan(phi) = (sqrt(6) - 1) c / (5 sigma_b)``), so both
-envelopes agree at zero and at 20 MPa of compression and differ in curvature only.
+(``tan(phi) = (sqrt(6) - 1) c / (5 sigma_b)``), so both envelopes agree at zero and at 5 sigma_b
+(50 MPa) of compression and differ in curvature only.
 
 **Specimens.** *Discs* (paper 003's elementary balls, diameters ``d_min .. d_max`` =
 2.5-5 mm, uniform): placed at random in the region at solid fraction ``solid_fraction`` and
