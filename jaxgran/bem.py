@@ -581,8 +581,8 @@ def _assign_contacts(contact_points, nodes, centre, node_angles):
     u = jnp.clip(_safe_div(jnp.sum((contact_points - a) * ab, axis=-1), le2), 0.0, 1.0) * le
     ahead = u >= 0.5 * le
     prev = (e - 1) % N
-    lengths = jnp.sqrt(jnp.sum((jnp.roll(nodes, -1, axis=0) - nodes) ** 2, axis=-1))
-    l_next, l_prev = lengths[(e + 1) % N], lengths[prev]
+    l_next = _safe_norm(nodes[(e + 2) % N] - nodes[(e + 1) % N])
+    l_prev = _safe_norm(nodes[e] - nodes[prev])
     w_next = _safe_div(u - 0.5 * le, 0.5 * (le + l_next))  # weight of e + 1 when ahead
     w_prev = _safe_div(0.5 * le - u, 0.5 * (le + l_prev))  # weight of e - 1 when behind
     lo = jnp.where(ahead, e, prev)
