@@ -455,7 +455,7 @@ def test_build_operators_shapes_and_points(batch):
         np.testing.assert_allclose(anchor, np.broadcast_to(anchor[0], anchor.shape), atol=1e-15)
 
 
-def test_contact_element_lookup_matches_the_nearest_element(batch):
+def test_contact_element_lookup_brackets_each_contact(batch):
     """The angular-sector lookup puts each contact between the midpoints of the element that
     holds it and a neighbour, with the hat weight of its arc-length position between them."""
     _, _, _, ops, *_ = batch
