@@ -647,10 +647,15 @@ def peak_stopper(load_fn, drop_fraction: float):
     return callback
 
 
+def n_damaged(state) -> int:
+    """Damaged (health < 1) elements of the real bonds."""
+    b = state.bonds
+    return int(np.sum((np.asarray(b.health) < 1) & np.asarray(b.i < b.j)[:, None]))
+
+
 def any_failed(state) -> bool:
     """Whether some element of a real bond has failed (a drop before that is vibration)."""
-    b = state.bonds
-    return bool(np.any((np.asarray(b.health) < 1) & np.asarray(b.i < b.j)[:, None]))
+    return n_damaged(state) > 0
 
 
 def concat_series(parts: list[dict]) -> dict:

@@ -125,14 +125,17 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
     setup.state = replace(state, walls=replace(w, mode=mode, vel=vel))
     h0 = float(w.point[bd.TOP, 1] - w.point[bd.BOTTOM, 1])
 
+    damaged0 = si.n_damaged(state)
+
     def shear_stop(state, rec):
         s_ax, s_lat, h = box_stress(rec, T)
         q = s_ax - s_lat
         shear_stop.best = max(shear_stop.best, float(q.max()))
         strain = 1.0 - h[-1] / h0
-        # a drop counts only once elements have failed and the deviator has built up
+        # a drop counts only once elements have failed during shearing (not in the isotropic
+        # stage) and the deviator has built up
         past = q[-1] < cfg.drop_fraction * shear_stop.best and shear_stop.best > 0
-        past = past and si.any_failed(state) and strain > 0
+        past = past and si.n_damaged(state) > damaged0 and strain > 0
         return state, bool(past or strain >= cfg.max_strain)
 
     shear_stop.best = -np.inf
