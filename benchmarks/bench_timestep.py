@@ -116,29 +116,16 @@ def bonded_energy(state, params):
     )
 
 
-def interface_elastic_energy(p, b):
-    """Elastic energy of the bonded interface elements (J):
-    ``A_e (k_n u_n^2 + k_s u_s^2) / 2`` per element, health-weighted (the potential of the
-    bonded-element law of :mod:`jaxgran.interface` for a fixed normal)."""
+def interface_energy(state, params):
+    """[kinetic, interface elastic (:func:`jaxgran.interface.elastic_energy`), contact] (J)."""
     import jax.numpy as jnp
 
     from jaxgran import interface as itf
 
-    k = itf.interface_kinematics(p, b)
-    a_e = (b.area / b.n_elements)[:, None]
-    k_n, k_s = b.normal_stiffness[:, None], b.shear_stiffness[:, None]
-    u = a_e * (k_n * k["u_n"] ** 2 + k_s * k["u_s"] ** 2)
-    return jnp.sum(jnp.where(k["live"][:, None], 0.5 * b.health * u, 0.0))
-
-
-def interface_energy(state, params):
-    """[kinetic, interface elastic, contact] (J)."""
-    import jax.numpy as jnp
-
     return jnp.stack(
         [
             _kinetic(state),
-            interface_elastic_energy(state.particles, state.bonds),
+            itf.elastic_energy(state.particles, state.bonds),
             _contact_energy(state, params),
         ]
     )
@@ -431,6 +418,7 @@ def linear_limits(case: Case) -> dict:
     import jax
     import jax.numpy as jnp
 
+    from jaxgran import interface as itf
     from jaxgran.bonds import bond_kinematics
     from jaxgran.contact import pair_forces
     from jaxgran.simulate import prepare
@@ -440,7 +428,7 @@ def linear_limits(case: Case) -> dict:
     q0 = _coords(state)
     to_f = lambda w: 2.0 / w / case.dt_theory
     if case.name == "interface":
-        u = lambda q: interface_elastic_energy(_placed(state, q), state.bonds)
+        u = lambda q: itf.elastic_energy(_placed(state, q), state.bonds)
         w = _omega_max(state, jax.hessian(u)(q0))
         return {"bonds": to_f(w)}
 

@@ -419,6 +419,18 @@ def interface_normal_stiffness(b: InterfaceBonds) -> Array:
     return b.normal_stiffness * b.area / b.n_elements * jnp.sum(b.health, axis=1)
 
 
+def elastic_energy(p: Particles, b: InterfaceBonds) -> Array:
+    """Elastic energy of the bonded interface elements (J, scalar):
+    ``sum_e health_e A_e (k_n u_n^2 + k_s u_s^2) / 2``, the potential of the bonded-element law
+    (Eq. 1) for a fixed interface normal (exact for translations; a rotation also turns the
+    normal). Failed elements (health 0) store nothing here."""
+    k = interface_kinematics(p, b)
+    a_e = (b.area / b.n_elements)[:, None]
+    k_n, k_s = b.normal_stiffness[:, None], b.shear_stiffness[:, None]
+    u = a_e * (k_n * k["u_n"] ** 2 + k_s * k["u_s"] ** 2)
+    return jnp.sum(jnp.where(k["live"][:, None], 0.5 * b.health * u, 0.0))
+
+
 def element_positions(p: Particles, b: InterfaceBonds) -> Array:
     """World position of every element (midpoint of its two copies) ``[B, E, 2]`` (m)."""
     k = interface_kinematics(p, b)

@@ -101,6 +101,24 @@ def test_forces_match_hand_computed_translation():
     np.testing.assert_allclose(t, [ti, tj], rtol=1e-10)
 
 
+def test_elastic_energy_is_the_potential_of_the_bonded_law():
+    """For a translation of one disc the element energy is A (k_n u_n^2 + k_s u_s^2) / 2 and
+    its gradient with respect to that disc's position is minus the interface force on it."""
+    parts, b = _pair()
+    dx, dy = 2.0e-7, -1.5e-7  # opening and sliding (m), well inside the envelope
+    moved = _move(parts, dx=dx, dy=dy)
+    e = float(itf.elastic_energy(moved, b))
+    assert e == pytest.approx(0.5 * W * T * (KN * dx * dx + KS * dy * dy), rel=1e-9)
+    f, _, _ = _eval(moved, b)
+
+    def energy_at(x):
+        return itf.elastic_energy(replace(moved, pos=moved.pos.at[1].set(x)), b)
+
+    grad = np.asarray(jax.grad(energy_at)(moved.pos[1]))
+    np.testing.assert_allclose(grad, -f[1], rtol=1e-9, atol=1e-12 * np.abs(f).max())
+    assert float(itf.elastic_energy(parts, b)) == 0.0
+
+
 def test_forces_match_hand_computed_rotation():
     """Relative rotation theta of j about its centre: element copies separate by
     (R(theta) - I) v with v the element point relative to j; the normal is the bisector."""
