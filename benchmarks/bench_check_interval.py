@@ -29,7 +29,7 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from machine import cpu_name  # noqa: E402
+from machine import cpu_name, save_figure, write_markdown  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,10 +91,7 @@ def chart(rows: list[dict], default: int, path: Path) -> None:
     for a in ax:
         a.axvline(default, color="k", ls=":", lw=1)
     ax[1].text(default, ax[1].get_ylim()[0], " default", va="bottom")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:
@@ -151,8 +148,7 @@ def main() -> None:
                 f"| {r['check_every']}{mark} | {r['dsm_checks']} | no break | | | "
                 f"| {r['steps']} | {r['wall_time_s']:.1f} |"
             )
-    lines += ["", "![check interval](../docs/check_interval.png)", ""]
-    Path(args.md).write_text("\n".join(lines) + "\n")
+    write_markdown(args.md, lines, "../docs/check_interval.png", "check interval")
     chart(rows, default, Path(args.png))
     print(f"wrote {args.md} and {args.png}")
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from machine import cpu_name  # noqa: E402
+from machine import cpu_name, save_figure, write_markdown  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,10 +67,7 @@ def chart(table: dict, default: int, path: Path) -> None:
     ax[1].set_yscale("log")
     ax[1].set_ylabel("wall time to failure (s)")
     ax[1].text(default, ax[1].get_ylim()[0], " default", va="bottom")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:
@@ -115,8 +112,7 @@ def main() -> None:
             f"| {statistics.median(r['wall_time_s'] for r in runs):.0f} "
             f"| {statistics.median(r['steps'] for r in runs):.0f} |"
         )
-    lines += ["", "![voronoi resolution](../docs/voronoi_resolution.png)", ""]
-    Path(args.md).write_text("\n".join(lines) + "\n")
+    write_markdown(args.md, lines, "../docs/voronoi_resolution.png", "voronoi resolution")
     chart(table, default, Path(args.png))
     print(f"wrote {args.md} and {args.png}")
 

@@ -13,8 +13,13 @@ default f is marked. Regenerate the inputs first if they are stale:
 from __future__ import annotations
 
 import argparse
+import os
 import re
+import sys
 from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from machine import save_figure  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,10 +94,7 @@ def main() -> None:
     ax[1].set_xlabel("f = dt / dt_theory")
     ax[1].set_ylabel("energy error, conservative\nbonded disc (stable runs)")
     ax[1].legend(fontsize=8)
-    fig.tight_layout()
-    Path(args.png).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.png, dpi=130)
-    plt.close(fig)
+    save_figure(fig, args.png)
     print(f"wrote {args.png}")
 
 

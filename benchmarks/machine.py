@@ -16,3 +16,23 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def save_figure(fig, path) -> None:
+    """Lay out, write (creating the folder, 130 dpi) and close a matplotlib figure."""
+    from pathlib import Path
+
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def write_markdown(path, lines: list[str], image: str, alt: str) -> None:
+    """Write a results section: ``lines``, then the chart ``image`` (a path relative to the
+    markdown file) under ``alt``."""
+    from pathlib import Path
+
+    Path(path).write_text("\n".join([*lines, "", f"![{alt}]({image})", ""]) + "\n")

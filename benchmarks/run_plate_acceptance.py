@@ -160,6 +160,7 @@ def _figure(res: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from machine import save_figure
 
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
     for k, (name, part) in enumerate(res.items()):
@@ -179,10 +180,7 @@ def _figure(res: dict, path: Path) -> None:
     ax[1].set_yscale("log")
     ax[1].set_xlabel("elementary discs")
     ax[1].set_ylabel("wall time to breakage (s)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:
