@@ -262,8 +262,37 @@ class Grid:
         return self.nx * self.ny
 
 
+class EnergyLedger(eqx.Module):
+    """Energy supplied and dissipated since the ledger was attached (J, scalars, cumulative;
+    on a slab of the scene's thickness wherever the forces are). Attach one with
+    :func:`jaxgran.energy.attach`; with ``SimState.energy`` set, every step accumulates:
+
+    - ``boundary_work``: work of the walls on the particles (contacts and wall bonds),
+    - ``body_work``: work of gravity and of applied body forces,
+    - ``dashpot``: dissipated by the normal and tangential contact dashpots,
+    - ``friction``: dissipated by Coulomb slip,
+    - ``damping``: removed by a scene's background (velocity-proportional) damping,
+    - ``breakage``: released at breakage (elastic energy of bonds as they soften or break,
+      plus the mechanical energy a host-side particle replacement removes),
+
+    and ``stored0`` holds the kinetic + elastic energy at attachment. The balance is
+    ``boundary_work + body_work = (stored - stored0) + dashpot + friction + damping +
+    breakage`` (:func:`jaxgran.energy.balance`).
+    """
+
+    boundary_work: Array
+    body_work: Array
+    dashpot: Array
+    friction: Array
+    damping: Array
+    breakage: Array
+    stored0: Array
+
+
 class SimState(eqx.Module):
-    """Everything that evolves in time. ``time`` (s) and ``step`` are scalars."""
+    """Everything that evolves in time. ``time`` (s) and ``step`` are scalars. ``energy``
+    (optional, static presence like ``bonds``) is an :class:`EnergyLedger` that the step
+    updates; without it the step computes no energy terms."""
 
     particles: Particles
     walls: Walls
@@ -271,6 +300,7 @@ class SimState(eqx.Module):
     time: Array
     step: Array
     bonds: eqx.Module | None = None
+    energy: EnergyLedger | None = None
 
 
 def replace(module: eqx.Module, **changes) -> eqx.Module:

@@ -555,6 +555,7 @@ def replace_particles(
             time=state.time,
             step=state.step,
             bonds=_bonds_after(state.bonds, touched, n_p, new_p),
+            energy=state.energy,
         ),
         events,
     )

@@ -465,9 +465,20 @@ def apply_control(state: SimState, params: Params, control: Control) -> SimState
         ramped, jnp.clip(state.time / jnp.where(ramped, control.ramp_time, 1.0), 0.0, 1.0), 1.0
     )
     force = scale * control.external_force
-    vel = jnp.where(free, p.vel * decay, p.vel) + dt * force * inv_m
-    omega = jnp.where(free[:, 0], p.omega * decay, p.omega)
-    p = replace(p, vel=vel, omega=omega)
+    damped_vel = jnp.where(free, p.vel * decay, p.vel)
+    damped_omega = jnp.where(free[:, 0], p.omega * decay, p.omega)
+    vel = damped_vel + dt * force * inv_m
+    led = state.energy
+    if led is not None:  # static: book the damping and the body forces' work
+        from ..energy import control_terms, kinetic_energy
+
+        ke0 = kinetic_energy(state)
+        ke1 = kinetic_energy(
+            replace(state, particles=replace(p, vel=damped_vel, omega=damped_omega))
+        )
+        ke2 = kinetic_energy(replace(state, particles=replace(p, vel=vel, omega=damped_omega)))
+        led = control_terms(led, ke0, ke1, ke2)
+    p = replace(p, vel=vel, omega=damped_omega)
     walls = state.walls
     if walls.count == 4:  # static: only a four-wall box can be a biaxial cell
         width = walls.point[RIGHT, 0] - walls.point[LEFT, 0]
@@ -481,7 +492,7 @@ def apply_control(state: SimState, params: Params, control: Control) -> SimState
             control.p_constant & lateral, 2.0 * control.p_target - s_ax, walls.target_stress
         )
         walls = replace(walls, target_stress=target)
-    return replace(state, particles=p, walls=walls)
+    return replace(state, particles=p, walls=walls, energy=led)
 
 
 def pooled_bursts(runs: list) -> dict:

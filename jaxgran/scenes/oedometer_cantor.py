@@ -31,6 +31,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from .. import energy
 from .. import geometry as geo
 from ..breakage import metrics
 from ..breakage.averaged import make_breakage, method_name
@@ -181,11 +182,15 @@ def _pile_top(state) -> float:
     return float((y.max(axis=1) + np.asarray(p.radius)[act]).max())
 
 
-def simulate_test(cfg, *, progress: bool = False, build_fn=None):
+def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: bool = False):
     """Settle, then load with breakage. Returns ``(settle_result, load_result, breakage,
     info)``; ``info`` holds snapshots, the initial mass and timing. ``build_fn(cfg) ->
     (state, params, grid)`` (default :func:`build`) must put the top bar last among the walls;
-    ``cfg`` needs the fields of :class:`Config` used here."""
+    ``cfg`` needs the fields of :class:`Config` used here.
+
+    ``energy_ledger``: attach a :mod:`jaxgran.energy` ledger when the loading starts, book
+    what each replacement removes (:func:`jaxgran.energy.account_host_change`) and return
+    the balance after every segment in ``info["energy"]`` (a list of dicts, J)."""
     state, params, grid = (build_fn or build)(cfg)
     dt = float(params.dt)
     peak = [0.0]
@@ -236,9 +241,17 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None):
     pending = [t for t in targets if t > 0]
     dt_log = [(0.0, dt)]
     current = {"params": params, "n_events": 0}
+    balances: list[dict] = []
+    if energy_ledger:
+        s0 = energy.attach(s0, params, settle.grid)
 
     def step_callback(s, rec):
+        before = s
         s, stop = brk(s, rec)
+        if energy_ledger:
+            if s is not before:
+                s = energy.account_host_change(before, s, current["params"])
+            balances.append({"time": float(s.time), **energy.balance(s, current["params"])})
         t_load = float(s.time) - t0
         prm = current["params"]
         if len(brk.events) > current["n_events"]:
@@ -276,6 +289,8 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None):
         "bar_start_y": y_bar,
         "dt_log": dt_log,
     }
+    if energy_ledger:
+        info["energy"] = balances
     return settle, load, brk, info
 
 
