@@ -5,19 +5,15 @@ where neighbours overlap the parent (``erosion="local"``, the default of
 eroded only by the sphero-radius r, the geometric minimum of the spheropolygon construction,
 so fragments start overlapping the neighbours that overlapped their parent).
 
-How "none" is selected from outside ``jaxgran``: ``replace_particles(..., overlap=zeros)``
-(an explicit per-slot overlap overrides ``erosion`` and is taken off all round, here 0 plus
-the ``1e-9 x R`` clearance). The scene builds its breakage with ``make_breakage`` inside
-``simulate_test`` and ``DsmBreakage.apply`` passes no erosion option, so the benchmark swaps
-the scene module's ``make_breakage`` for the duration of a run with one that returns a
-:class:`DsmBreakage` subclass (``_ErosionProbe``). Its ``apply`` calls the unmodified
-``DsmBreakage.apply`` for ``local`` and the same bookkeeping with ``overlap=0`` for
-``none`` (``uniform``, the parent's largest overlap off all round, is available too), and
-records per event: the KE of the state just before and just after the replacement, the
-parent's largest overlap, the fragments' largest overlap and resultant force right after, and
-the mass that each erosion mode would have removed from the same parent at the same instant
-(a dry run of ``replace_particles``: a paired comparison that does not depend on the
-trajectories, which diverge after the first breakage).
+The mode is the scene's ``Config.erosion`` (``replace_particles(..., erosion=...)``; ``none``
+erodes only by the sphero-radius plus the ``1e-9 x R`` clearance). For the duration of a run
+the benchmark swaps the scene module's ``make_breakage`` for one that returns the same
+:class:`DsmBreakage` as a subclass (``_ErosionProbe``) whose ``apply`` calls the scene's own
+``DsmBreakage.apply`` and records per event: the KE of the state just before and just after
+the replacement, the parent's largest overlap, the fragments' largest overlap and resultant
+force right after, and the mass that each erosion mode would have removed from the same
+parent at the same instant (a dry run of ``replace_particles``: a paired comparison that
+does not depend on the trajectories, which diverge after the first breakage).
 
 KE spike: :func:`jaxgran.breakage.metrics.kinetic_energy_spikes` on the loading stage's
 ``kinetic_energy`` series (sampled every ``record_every`` steps), with the scene's window;
@@ -89,17 +85,6 @@ MID = {
 }
 
 
-def _replace_kwargs(mode: str, n_slots: int) -> dict:
-    """Keyword arguments of ``replace_particles`` for an erosion mode."""
-    if mode == "local":
-        return {"erosion": "local"}
-    if mode == "uniform":
-        return {"erosion": "uniform"}
-    if mode == "none":
-        return {"overlap": np.zeros(n_slots)}
-    raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-
-
 def _jaxgran_commit() -> str:
     """Short commit of the checkout, ``+modified`` when jaxgran/ differs from it (the
     package may be edited while benchmarks run)."""
@@ -133,10 +118,8 @@ def _probe_class():
     from jaxgran.breakage.replace import Replacement, max_overlap, replace_particles
 
     class _ErosionProbe(DsmBreakage):
-        """DSM breakage whose fragments are eroded by ``self.erosion_mode`` (see the module
-        docstring); every event gets a ``probe`` dict."""
-
-        erosion_mode = "local"
+        """The scene's DSM breakage (fragments eroded by ``self.erosion``, from
+        ``Config.erosion``) that also gives every event a ``probe`` dict (module docstring)."""
 
         def _replace(self, state, decisions, mode):
             reps = [Replacement(d.slot, d.pieces, d.planes) for d in decisions]
@@ -145,22 +128,8 @@ def _probe_class():
                 reps,
                 min_area=self.min_area,
                 mean_initial_mass=self.mean_initial_mass,
-                **_replace_kwargs(mode, int(state.particles.pos.shape[0])),
+                erosion=mode,
             )
-
-        def _apply_mode(self, state, decisions):
-            """``DsmBreakage.apply`` with the erosion of ``self.erosion_mode``."""
-            if self.erosion_mode == "local":
-                return super().apply(state, decisions)  # the unmodified scene path
-            state, events = self._replace(state, decisions, self.erosion_mode)
-            for d, ev in zip(decisions, events, strict=True):
-                ev.update(d.info)
-                ev["eps"] = self.eps
-                self._cache.pop(int(ev["parent_uid"]), None)
-                if "capacity_growth" in ev:
-                    self._note(ev["capacity_growth"])
-                self.events.append(ev)
-            return self._prepare(state)
 
         def apply(self, state, decisions):
             ke0 = _kinetic_energy(state)
@@ -168,7 +137,7 @@ def _probe_class():
             f0 = np.linalg.norm(np.asarray(state.particles.force), axis=1)
             dry = {m: self._replace(state, decisions, m)[1] for m in MODES}
             n0 = len(self.events)
-            new = self._apply_mode(state, decisions)
+            new = super().apply(state, decisions)  # the scene's path, erosion=cfg.erosion
             ke1 = _kinetic_energy(new)
             ov1 = np.asarray(max_overlap(new))
             f1 = np.linalg.norm(np.asarray(new.particles.force), axis=1)
@@ -204,8 +173,9 @@ def _scene_breakage(mode: str):
         brk = original(*args, **kwargs)
         if type(brk) is not DsmBreakage:
             raise TypeError(f"erosion probe needs method 'dsm', got {type(brk).__name__}")
-        brk.__class__ = probe  # same state, the subclass only overrides apply
-        brk.erosion_mode = mode
+        brk.__class__ = probe  # same state, the subclass only adds the probe to apply
+        if brk.erosion != mode:
+            raise ValueError(f"the scene built erosion {brk.erosion!r}, expected {mode!r}")
         return brk
 
     oc.make_breakage = make
@@ -215,10 +185,11 @@ def _scene_breakage(mode: str):
         oc.make_breakage = original
 
 
-def config(quick: bool, seed: int):
+def config(quick: bool, seed: int, mode: str):
     from jaxgran.scenes import oedometer_cantor as oc
 
-    return dataclasses.replace(oc.Config(), **(oc.QUICK if quick else MID), seed=seed)
+    base = oc.QUICK if quick else MID
+    return dataclasses.replace(oc.Config(), **base, seed=seed, erosion=mode)
 
 
 def _spike_window(cfg, dt_final: float) -> float:
@@ -232,7 +203,7 @@ def one(mode: str, seed: int, quick: bool) -> dict:
     from jaxgran.breakage import metrics
     from jaxgran.scenes import oedometer_cantor as oc
 
-    cfg = config(quick, seed)
+    cfg = config(quick, seed, mode)
     out = {
         "mode": mode,
         "seed": seed,
@@ -347,7 +318,7 @@ def cached(mode: str, seed: int, quick: bool, raw: Path | None, same_process: bo
     path = raw / f"erosion_{'quick' if quick else 'mid'}_{mode}_s{seed}.json"
     if path.exists():
         r = json.loads(path.read_text())
-        if r.get("config") == _config_dict(config(quick, seed)):
+        if r.get("config") == _config_dict(config(quick, seed, mode)):
             return r
     r = run(mode, seed, quick)
     raw.mkdir(parents=True, exist_ok=True)
@@ -472,7 +443,8 @@ def main() -> None:
         return
     modes = [m for m in args.modes.split(",") if m]
     for m in modes:
-        _replace_kwargs(m, 1)  # validates
+        if m not in MODES:
+            raise SystemExit(f"--modes: {m!r} is not one of {', '.join(MODES)}")
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -486,7 +458,7 @@ def main() -> None:
             brief = {k: r.get(k) for k in ("mode", "seed", "ok", "n_events", "mass_lost_pct")}
             print(brief, f"wall {r['wall_time_s']:.0f} s", r.get("error", ""), flush=True)
     loads = [r.get("load_average", load0) for r in rows] or [load0]
-    cfg = config(args.quick, 0)
+    cfg = config(args.quick, 0, "local")
     from jaxgran.scenes import oedometer_cantor as oc
 
     changed = oc.QUICK if args.quick else MID

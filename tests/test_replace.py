@@ -212,6 +212,27 @@ def test_fragments_start_without_overlap_and_without_force(erosion):
     assert _max_force_on(state, params, frags + [0, 2]) < 1e-9 * before
 
 
+def test_without_erosion_fragments_inherit_the_parents_overlap():
+    overlap = 3e-5
+    state, params, grid = _row_of_three(overlap)
+    lines = [[[-1, -1], [1, 1]], [[-1, 0.001], [1, 0.001]]]
+    state, ev = replace_particle(state, 1, _cut(state, 1, lines), erosion="none")
+    # nothing taken off beyond the sphero-radius but the 1e-9 x R clearance
+    assert ev["erosion"] < 1e-6 * overlap and ev["erosion_mode"] == "none"
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0
+    frags = ev["fragment_slots"].tolist()
+    # the fragments touching a neighbour press on it as hard as the parent did
+    assert _max_force_on(state, params, frags) == pytest.approx(1e6 * overlap, rel=1e-3)
+
+
+def test_unknown_erosion_mode_is_an_error():
+    state, _, _ = _row_of_three(3e-5)
+    lines = [[[-1, 0.001], [1, 0.001]]]
+    with pytest.raises(ValueError, match="erosion must be one of"):
+        replace_particle(state, 1, _cut(state, 1, lines), erosion="some")
+
+
 def test_local_erosion_removes_only_the_overlap_caps():
     """The fragments' outline is the opening of the clipped pieces, so the parent's core loses
     a layer delta only on the faces that neighbours penetrate (area of a convex K dilated by
@@ -222,8 +243,7 @@ def test_local_erosion_removes_only_the_overlap_caps():
     lost = {}
     for mode in ("none", "local", "uniform"):
         state, _, _ = _row_of_three(overlap)
-        kw = {"overlap": 0.0} if mode == "none" else {"erosion": mode}
-        _, ev = replace_particle(state, 1, _cut(state, 1, lines), clearance=0.0, **kw)
+        _, ev = replace_particle(state, 1, _cut(state, 1, lines), clearance=0.0, erosion=mode)
         lost[mode] = ev["mass_lost"] / RHO  # m^2
     d = overlap
     assert lost["local"] - lost["none"] == pytest.approx(2 * d * (A + 2 * R), rel=0.01)

@@ -186,6 +186,7 @@ class AveragedStressBreakage(DsmBreakage):
         max_contacts: int = 16,
         n_arc: int = 64,
         max_events: int | None = None,
+        erosion: str = "local",
     ) -> None:
         if method not in AVERAGED_METHODS:
             raise ValueError(f"method must be one of {AVERAGED_METHODS}, got {method!r}")
@@ -211,6 +212,7 @@ class AveragedStressBreakage(DsmBreakage):
             max_contacts=max_contacts,
             n_arc=n_arc,
             max_events=max_events,
+            erosion=erosion,
         )
         cal = calibrate_strengths(calibration_force, calibration_radius, t)
         self.method = method
@@ -327,11 +329,13 @@ def make_breakage(
     mean_initial_mass: float | None = None,
     dsm_options: dict[str, Any] | None = None,
     averaged_options: dict[str, Any] | None = None,
+    erosion: str = "local",
 ) -> DsmBreakage:
     """Breakage callback for ``--method``: ``"dsm"`` gives a :class:`DsmBreakage` with
     ``eps = calibrate_eps(F, R)``, the others an :class:`AveragedStressBreakage` with
     :func:`calibrate_strengths` of the same F (N), R (m); all break the Brazilian disc at F.
-    Extra keyword arguments per family go in ``dsm_options`` / ``averaged_options``."""
+    Extra keyword arguments per family go in ``dsm_options`` / ``averaged_options``;
+    ``erosion`` (``"local"``, ``"uniform"``, ``"none"``) is the fragments' erosion for all."""
     t = float(params.thickness if thickness is None else thickness)
     common = dict(
         poisson_ratio=poisson_ratio,
@@ -339,6 +343,7 @@ def make_breakage(
         thickness=t,
         min_area=min_area,
         mean_initial_mass=mean_initial_mass,
+        erosion=erosion,
     )
     if method == "dsm":
         eps = calibrate_eps(

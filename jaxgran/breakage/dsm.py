@@ -60,7 +60,7 @@ from ..state import (
     replace,
 )
 from .criteria import connection_points, fracture_planes
-from .replace import Replacement, dilated_outline, replace_particles
+from .replace import EROSION_MODES, Replacement, dilated_outline, replace_particles
 from .ssm import split_convex
 
 log = logging.getLogger(__name__)
@@ -382,6 +382,8 @@ class DsmBreakage:
         load_model: BEM contact load model, ``"flamant"`` or ``"element"``.
         cache_size: per-shape BEM operators kept (least recently used dropped first).
         max_events: stop the run once this many breakage events happened (None: never).
+        erosion: erosion of the fragments, ``"local"`` (default), ``"uniform"`` or
+            ``"none"`` (:func:`~jaxgran.breakage.replace.replace_particles`).
     """
 
     def __init__(
@@ -404,8 +406,12 @@ class DsmBreakage:
         load_model: str = "flamant",
         cache_size: int = 256,
         max_events: int | None = None,
+        erosion: str = "local",
     ) -> None:
         _check_positive(eps=eps)
+        if erosion not in EROSION_MODES:
+            raise ValueError(f"erosion must be one of {EROSION_MODES}, got {erosion!r}")
+        self.erosion = erosion
         self.params = params
         self.grid = grid
         self.eps = float(eps)
@@ -508,6 +514,7 @@ class DsmBreakage:
             reps,
             min_area=self.min_area,
             mean_initial_mass=self.mean_initial_mass,
+            erosion=self.erosion,
         )
         for d, ev in zip(decisions, events, strict=True):
             ev.update(d.info)

@@ -84,6 +84,9 @@ __all__ = [
     "replace_particles",
 ]
 
+# Erosion of the fragments (replace_particles): local clipping, uniform, or none.
+EROSION_MODES = ("local", "uniform", "none")
+
 # Clearance added to the erosion, relative to the parent's bounding radius: keeps the first
 # contact after creation at a (tiny) positive gap despite round-off.
 _CLEARANCE_REL = 1e-9
@@ -387,8 +390,10 @@ def replace_particles(
             overrides ``erosion``.
         clearance: added to the erosion (m); default ``1e-9`` x the parent's bound radius.
         erosion: ``"local"`` (default: clip the pieces only where a neighbour or wall
-            overlaps the parent, :func:`contact_halfplanes`) or ``"uniform"`` (erode by the
-            parent's largest overlap, :func:`max_overlap`, all round); module docstring.
+            overlaps the parent, :func:`contact_halfplanes`), ``"uniform"`` (erode by the
+            parent's largest overlap, :func:`max_overlap`, all round) or ``"none"`` (only the
+            sphero-radius, so fragments inherit the parent's overlaps; for comparisons, see
+            ``docs/stability.md``); module docstring.
         mean_initial_mass: mean particle mass at t = 0 (kg), for the breakage type (paper 000
             Table III); without it the type is not classified.
         growth: factor by which the particle capacity grows when free slots run out.
@@ -408,9 +413,12 @@ def replace_particles(
     for k in idx:
         if not 0 <= k < n_p or not arr["active"][k]:
             raise ValueError(f"slot {k} is not an active particle (capacity {n_p})")
-    if erosion not in ("local", "uniform"):
-        raise ValueError(f"erosion must be 'local' or 'uniform', got {erosion!r}")
+    if erosion not in EROSION_MODES:
+        raise ValueError(f"erosion must be one of {EROSION_MODES}, got {erosion!r}")
     local = overlap is None and erosion == "local"
+    mode = erosion if overlap is None else "uniform"  # a given overlap is taken off all round
+    if overlap is None and erosion == "none":
+        overlap = np.zeros(n_p)
     if overlap is None:
         overlap = np.zeros(n_p) if local else np.asarray(max_overlap(state))
     overlap = np.broadcast_to(np.asarray(overlap, dtype=float), (n_p,))
@@ -529,7 +537,7 @@ def replace_particles(
             "eroded_mass": lost - fines_mass,
             "n_fines": len(rep.pieces) - len(frags),
             "erosion": delta,
-            "erosion_mode": "local" if local else "uniform",
+            "erosion_mode": mode,
             "n_contact_clips": n_clips,
             "planes": planes.reshape(-1, 2, 2),
             "position": pos_k,
@@ -645,7 +653,8 @@ def replace_particle(
         areal_density: kg/m^2; default the parent's (mass / area).
         min_area: smallest fragment area kept (m^2).
         overlap: erosion beyond r (m), all round; given, it overrides ``erosion``.
-        erosion: ``"local"`` (default) or ``"uniform"``, see :func:`replace_particles`.
+        erosion: ``"local"`` (default), ``"uniform"`` or ``"none"``, see
+            :func:`replace_particles`.
         clearance: extra erosion (m); default ``1e-9`` x the parent's bound radius.
         mean_initial_mass: mean initial particle mass (kg) for the breakage type.
         planes: ``[k, 2, 2]`` fracture planes (m), stored in the event.

@@ -89,6 +89,7 @@ class Config:
     records_per_segment: int = 10
     n_elements: int = 64  # DSM BEM elements
     n_points: int = 200  # DSM BEM sample points
+    erosion: str = "local"  # fragments' erosion: local, uniform, none (docs/stability.md)
     seed: int = 0
 
 
@@ -234,6 +235,7 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
         min_area=cfg.min_fragment_fraction * m_mean / cfg.areal_density,
         mean_initial_mass=m_mean,
         dsm_options={"n_elements": cfg.n_elements, "n_points": cfg.n_points},
+        erosion=cfg.erosion,
     )
     t0 = float(s0.time)
     targets = sorted(cfg.snapshot_times)

@@ -74,6 +74,7 @@ class Config:
     records_per_segment: int = 10
     n_elements: int = 64
     n_points: int = 200
+    erosion: str = "local"  # fragments' erosion: local, uniform, none
     seed: int = 0
 
 
