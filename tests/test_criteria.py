@@ -180,6 +180,17 @@ def test_touching_and_shared_seeds_connect_at_infinity():
     assert res.breaks
 
 
+def test_finite_seeds_connect_at_their_computed_level():
+    """Seeds marked finite keep their psi: two touching seeds connect at the lower of their
+    two levels, not at infinity."""
+    ij, xy = _grid(5, 0.1)
+    psi = np.linspace(1.0, 2.0, len(ij))
+    a, b = _index_of(ij, 0, 0), _index_of(ij, 0, 1)
+    res = connection_points(psi, ij, [[a], [b]], eps=1e12, finite=[a, b])
+    assert res.bottleneck[0, 1] == min(psi[a], psi[b])
+    assert not res.breaks
+
+
 def test_disconnected_samples_never_connect():
     ij = np.array([[0, 0], [0, 1], [0, 3], [0, 4]])  # gap at (0, 2)
     psi = np.array([1.0, 2.0, 2.0, 1.0])

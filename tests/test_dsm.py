@@ -142,3 +142,39 @@ def test_no_recompiles_across_breakage_events(quick_run):
     # the halves start without force
     ids = dsm.events[0]["fragment_slots"]
     assert np.all(np.linalg.norm(np.asarray(state.particles.force)[ids], axis=1) < 1e-6)
+
+
+def test_two_neighbours_on_one_corner_do_not_break_a_lightly_loaded_particle():
+    """A Voronoi pile under its own weight, every particle checked (screening off): the
+    contacts of two neighbours at a shared corner have touching seeds. Counted as singular
+    loads they joined at psi = inf, and every particle broke under any load. Their psi is
+    finite now, proportional to the load (the BEM is linear: doubling K_n and K_t at fixed
+    positions doubles every contact force and every saddle), and far below eps."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_contacts import packing
+
+    state, params, grid = packing(12, jnp.float64)
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0
+    state, _, err = run_segment(state, params, grid, 1, 500)
+    assert int(err) == 0
+    # at rest (no dashpot force), so that scaling both stiffnesses scales every force
+    p = state.particles
+    state = replace(state, particles=replace(p, vel=0 * p.vel, omega=0 * p.omega))
+    eps = calibrate_eps(150.79, 0.01, thickness=float(params.thickness))
+    saddles = []
+    for scale in (1.0, 2.0):
+        prm = replace(
+            params,
+            normal_stiffness=scale * params.normal_stiffness,
+            tangential_stiffness=scale * params.tangential_stiffness,
+        )
+        brk = DsmBreakage(prm, grid, eps=eps, screen_fraction=0.0, cache_size=64)
+        assert brk.check(state) == []
+        saddles.append(np.array([brk.last_saddle[k] for k in sorted(brk.last_saddle)]))
+    assert saddles[0].size >= 8 and np.all(np.isfinite(saddles[0]))
+    assert saddles[0].max() < 0.2 * eps
+    np.testing.assert_allclose(saddles[1], 2.0 * saddles[0], rtol=1e-6)

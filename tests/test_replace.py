@@ -62,6 +62,18 @@ def test_dilated_outline_erodes_back_to_the_core(n):
     assert 0 < excess <= 1.1 * math.pi**3 * R**2 / (3 * 64**2)
 
 
+def test_dilated_outline_of_a_core_with_a_collinear_vertex():
+    """A vertex in the middle of a straight edge (Voronoi cells and clipped pieces have
+    them) adds no arc: the outline is that of the square without it."""
+    a = 0.01
+    square = np.array([[0, 0], [a, 0], [a, a], [0, a]], float)
+    with_mid = np.array([[0, 0], [a / 2, 0], [a, 0], [a, a], [0, a]], float)
+    out = dilated_outline(with_mid, R, n_arc=64)
+    ref = dilated_outline(square, R, n_arc=64)
+    assert geo.polygon_area(out) == pytest.approx(geo.polygon_area(ref), rel=1e-12)
+    assert np.allclose(out.min(axis=0), -R) and np.allclose(out.max(axis=0), a + R)
+
+
 # ----------------------------------------------------------------------------- bookkeeping
 
 

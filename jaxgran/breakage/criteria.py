@@ -49,8 +49,9 @@ class ConnectionPoints:
     Attributes:
         bottleneck: ``[n_contacts, n_contacts]`` psi (Pa) of the saddle joining each pair: the
             largest level at which both contacts lie in one 4-connected component of
-            ``{psi >= level}`` (seed samples count as ``+inf``). ``+inf`` on the diagonal and
-            where seeds touch, ``-inf`` where the samples never connect them.
+            ``{psi >= level}`` (seed samples count as ``+inf``, except ``finite`` ones).
+            ``+inf`` on the diagonal and where infinite seeds touch, ``-inf`` where the
+            samples never connect them.
         location: ``[n_contacts, n_contacts]`` sample index of that saddle, ``-1`` where none
             (diagonal, never connected).
         saddle_level: ``[n_saddles]`` psi (Pa) at each merge of two seeded domains, highest
@@ -81,6 +82,7 @@ def connection_points(
     ij: npt.ArrayLike,
     seeds: list[npt.ArrayLike],
     eps: float,
+    finite: npt.ArrayLike | None = None,
 ) -> ConnectionPoints:
     """Bottlenecks and connection points of the strain-energy field of one particle.
 
@@ -99,6 +101,8 @@ def connection_points(
         seeds: one index array per contact: the samples next to that contact. Their ``psi`` is
             treated as ``+inf`` (the load point is singular).
         eps: damage threshold ``epsilon`` (Pa) of paper 000 Eq. 3.
+        finite: seed samples that keep their ``psi`` instead of ``+inf`` (where the seeds of
+            two contacts touch, see :func:`jaxgran.breakage.dsm._touching_seeds`).
 
     Returns:
         A :class:`ConnectionPoints`.
@@ -130,6 +134,9 @@ def connection_points(
         level[idx] = np.inf
         for s in idx.tolist():
             contact_bits[s] |= 1 << c
+    if finite is not None:
+        keep = np.asarray(finite, dtype=np.int64).ravel()
+        level[keep] = psi[keep]
 
     # Dense lookup grid: sample index at each (i, j), -1 where there is no sample.
     lo = ij.min(axis=0)

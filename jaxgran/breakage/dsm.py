@@ -16,10 +16,13 @@
    nothing recompiles while particles break.
 4. **Connection points** (host, :func:`~jaxgran.breakage.criteria.connection_points`): the
    contacts of one neighbour form one seed set (the sample points nearest each of its
-   contact points); the particle breaks iff the highest saddle between two seed sets reaches
-   ``eps`` (paper 000 Eq. 3). Each connection point selects the nearest line joining two
-   neighbours' contact points (force-weighted centre of each neighbour's contacts) as a
-   fracture plane (:func:`~jaxgran.breakage.criteria.fracture_planes`).
+   contact points, counted as psi = inf: the loads are singular); the particle breaks iff the
+   highest saddle between two seed sets reaches ``eps`` (paper 000 Eq. 3). Where the seeds of
+   two neighbours touch on the sample grid (two neighbours pressing on one corner), those
+   samples keep their computed psi, or they would connect at infinity and break the particle
+   under any load (:func:`_touching_seeds`). Each connection point selects the nearest line
+   joining two neighbours' contact points (force-weighted centre of each neighbour's
+   contacts) as a fracture plane (:func:`~jaxgran.breakage.criteria.fracture_planes`).
 5. **Replacement**: the planes cut the dilated outline (:func:`~jaxgran.breakage.ssm.
    split_convex` of :func:`~jaxgran.breakage.replace.dilated_outline`); the pieces are
    eroded and written into free slots (:func:`~jaxgran.breakage.replace.replace_particles`),
@@ -642,6 +645,7 @@ class DsmBreakage:
             if groups.size < 2 or not pm.any():
                 continue
             samples = pts_all[b][pm]
+            ij = ij_all[b][pm]
             seeds, centres = [], []
             for g in groups.tolist():
                 sel = nb == g
@@ -650,7 +654,9 @@ class DsmBreakage:
                 w = np.linalg.norm(cfs[sel], axis=1)
                 w = w if w.sum() > 0 else np.ones_like(w)
                 centres.append((w[:, None] * cpts[sel]).sum(0) / w.sum())
-            res = connection_points(psi[b][pm], ij_all[b][pm], seeds, self.eps)
+            res = connection_points(
+                psi[b][pm], ij, seeds, self.eps, finite=_touching_seeds(seeds, ij)
+            )
             off = ~np.eye(groups.size, dtype=bool)
             saddle = float(np.max(res.bottleneck[off]))
             uid = int(np.asarray(p.uid)[slot])
@@ -707,6 +713,27 @@ class DsmBreakage:
                 "planes and the grid bounds"
             )
         return state
+
+
+def _touching_seeds(seeds: list, ij: np.ndarray) -> np.ndarray:
+    """Seed samples that share or neighbour (4-connectivity on the sample grid) a seed of
+    another contact.
+
+    Seed samples count as ``psi = +inf`` (the load points are singular). Two seed sets that
+    touch would then be joined at an infinite level and the particle would break under any
+    load, however small. That happens when two neighbours press on one corner (three
+    Voronoi cells meet at a point) closer together than the sample spacing, where the
+    sampled field cannot tell the two loads apart. Those samples keep their computed psi
+    (:func:`~jaxgran.breakage.criteria.connection_points`, ``finite``), so the level at which
+    the two contacts connect scales with the load."""
+    out = []
+    for a in range(len(seeds)):
+        for b in range(a + 1, len(seeds)):
+            gap = np.abs(ij[seeds[a]][:, None, :] - ij[seeds[b]][None, :, :]).sum(axis=-1)
+            near = gap <= 1
+            if near.any():
+                out += [seeds[a][near.any(axis=1)], seeds[b][near.any(axis=0)]]
+    return np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
 
 
 def _body_to_world(state: SimState, slot: int):

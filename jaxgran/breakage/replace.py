@@ -157,7 +157,7 @@ def dilated_outline(core: npt.ArrayLike, radius: float, n_arc: int = 64) -> np.n
     for k in range(len(c)):
         s = math.ceil(n_arc * theta[k] / (2.0 * math.pi) - 1e-9)
         if s <= 0:  # collinear corner: the two edge lines meet at the offset point
-            out.append(c[k] + radius * n_prev[k])
+            out.append((c[k] + radius * n_prev[k])[None, :])
             continue
         # tangent lines at phi0, phi0 + (j + 1/2) a / s (j < s), phi0 + a; consecutive lines
         # at angles p < q meet at c + r / cos((q - p) / 2) * u((p + q) / 2)
