@@ -129,19 +129,30 @@ def test_plate_contact_axis_is_in_tension_between_compressed_ends(plate):
     assert sxx[np.argmin(y)] < 0 and sxx[np.argmax(y)] < 0
 
 
-def test_plate_contact_splits_the_disc_along_the_loading_axis(plate):
-    """The default specimen (seed 0) splits into two large fragments along the axis. Over 8
-    seeds, 4 do so (benchmarks/plate_acceptance/resolution.json); the others lose a cap or a
-    side piece."""
+def test_plate_contact_tension_cracks_follow_the_loading_axis(plate):
+    """The default specimen (seed 0) fails (the load drops) by tension cracks along the
+    loading axis, and the interfaces exert no net force through the whole run."""
     cfg, res, setup, m = plate
     assert m["final_force_over_max"] < cfg.drop_fraction
     assert m["n_failed_tension"] > 0
-    assert m["split_angle_from_loading_axis_deg"] < 25.0
-    assert m["fragment_sizes"][1] >= 0.2 * setup.spec.n_particles
+    assert m["tension_cracks_axis_angle_deg"] < 25.0
     # Newton's third law through the whole run: the interfaces exert no net force
     f, _, _ = itf.interface_forces(res.state.particles, res.state.bonds, res.state.walls, 0.0)
     f = np.asarray(f)
     assert np.abs(f.sum(axis=0)).max() < 1e-9 * np.abs(f).max()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 7 open: seed 0 split into two large fragments along the axis with the "
+    "earlier tangential contact law, which created energy in slipping contacts "
+    "(docs/design_notes.md); with the corrected law the run stops (load below the drop "
+    "fraction) with 11 bonds broken and the cracks not yet through",
+)
+def test_plate_contact_splits_the_disc_into_two_fragments(plate):
+    cfg, res, setup, m = plate
+    assert m["split_angle_from_loading_axis_deg"] < 25.0
+    assert m["fragment_sizes"][1] >= 0.2 * setup.spec.n_particles
 
 
 def test_plate_contact_shear_failures_concentrate_under_the_plates(plate):
