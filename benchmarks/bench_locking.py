@@ -1,0 +1,124 @@
+"""Locking counts per breakage method (issue 9, stability study): the same Cantor pentagon
+oedometer (`oedometer-cantor`, paper 000 §III; the mid-size pile of
+`benchmarks/bench_erosion.py`) broken by each of the four replaceable-particle methods, all
+calibrated to the same Brazilian breaking force, several seeds each.
+
+The locking effect (paper 000 §IV.A, Fig. 10) is a fragment that keeps its parent's load and
+breaks again along nearly the same direction, shaving strips off the grain.
+:func:`jaxgran.breakage.metrics.locking_effect` counts, per run, the *repeats* (an event
+whose parent is a fragment of an earlier event cut within 15 degrees of that event's plane)
+and the *locking chains* (two or more repeats in one lineage).
+
+    python benchmarks/bench_locking.py                     # 4 methods x seeds 0, 1
+    python benchmarks/bench_locking.py --seeds 0 --methods dsm,split-cell
+
+Writes ``benchmarks/LOCKING_RESULTS.md`` (and the per-run numbers as JSON next to it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_erosion import MID  # noqa: E402
+from machine import cpu_name  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+METHODS = ("dsm", "split-cell", "cross-cut", "mohr-coulomb")
+
+
+def one(method: str, seed: int) -> dict:
+    from jaxgran.breakage import metrics
+    from jaxgran.scenes import oedometer_cantor as oc
+
+    cfg = dataclasses.replace(oc.Config(), **MID, method=method, seed=seed)
+    t0 = time.perf_counter()
+    settle, load, brk, info = oc.simulate_test(cfg)
+    wall = time.perf_counter() - t0
+    ev = brk.events
+    lock = metrics.locking_effect(ev)
+    lost = sum(float(e["mass_lost"]) for e in ev)
+    return {
+        "method": method,
+        "seed": seed,
+        "n_events": len(ev),
+        "n_repeats": int(lock["n_repeats"]),
+        "repeat_fraction": float(lock["repeat_fraction"]),
+        "n_locking_chains": int(lock["n_locking_chains"]),
+        "max_chain": int(lock["max_chain"]),
+        "mass_lost_pct": 100.0 * lost / info["initial_mass"],
+        "steps": int(load.steps),
+        "wall_time_s": wall,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", default="0,1")
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--md", default=str(ROOT / "benchmarks" / "LOCKING_RESULTS.md"))
+    args = ap.parse_args()
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    methods = [m for m in args.methods.split(",") if m]
+    for m in methods:
+        if m not in METHODS:
+            raise SystemExit(f"--methods: {m!r} is not one of {', '.join(METHODS)}")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    rows = []
+    for m in methods:
+        for s in seeds:
+            r = one(m, s)
+            print(r, flush=True)
+            rows.append(r)
+    Path(args.md).with_suffix(".json").write_text(json.dumps(rows, indent=1))
+    cmd = "python benchmarks/bench_locking.py"
+    if args.seeds != "0,1":
+        cmd += f" --seeds {args.seeds}"
+    if methods != list(METHODS):
+        cmd += f" --methods {','.join(methods)}"
+    lines = [
+        "# Locking counts per breakage method",
+        "",
+        f"`{cmd}` on {cpu_name()} ({os.cpu_count()} cores), jax {jax.__version__} on the "
+        f"CPU, float64, {datetime.date.today().isoformat()}. Scene: `oedometer-cantor` with "
+        f"{json.dumps(MID)} (12 grains, weaker grains and a faster bar so that several break "
+        "in a minute); every method calibrated to the same Brazilian force (50 N). Repeat: "
+        "an event whose parent is a fragment of an earlier event, cut within 15 deg of that "
+        "event's plane; locking chain: 2 or more repeats in one lineage "
+        "(`jaxgran.breakage.metrics.locking_effect`).",
+        "",
+        "| method | seed | events | repeats | repeat fraction | locking chains | longest "
+        "chain (events) | mass lost % | steps | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['method']} | {r['seed']} | {r['n_events']} | {r['n_repeats']} | "
+            f"{r['repeat_fraction']:.2f} | {r['n_locking_chains']} | {r['max_chain']} | "
+            f"{r['mass_lost_pct']:.2f} | {r['steps']} | {r['wall_time_s']:.0f} |"
+        )
+    lines += ["", "| method | runs | events (sum) | repeats (sum) | locking chains (sum) |"]
+    lines += ["|---|---|---|---|---|"]
+    for m in methods:
+        sel = [r for r in rows if r["method"] == m]
+        lines.append(
+            f"| {m} | {len(sel)} | {sum(r['n_events'] for r in sel)} | "
+            f"{sum(r['n_repeats'] for r in sel)} | {sum(r['n_locking_chains'] for r in sel)} |"
+        )
+    Path(args.md).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
