@@ -78,27 +78,12 @@ def test_balance_residual_converges_at_order_two_in_dt():
 
 
 def _slide(mu, theta, t_end):
-    """A square block on a floor, gravity tilted by theta: returns (start, final, params)."""
-    h, r, k = 0.01, 5e-4, 2e4
-    block = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float) + [0.0, r]
-    parts = particles_from_polygons([block], r, RHO)
-    g = 9.81
-    m = float(parts.mass[0])
-    params = make_params(
-        normal_stiffness=k,
-        tangential_stiffness=k,
-        friction=mu,
-        gravity=(g * np.sin(theta), -g * np.cos(theta)),
-        normal_damping=damping_from_restitution(0.3, k, m),
-        tangential_damping=damping_from_restitution(0.3, k, m),
-    )
-    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, safety=0.1)))
-    d0 = m * g * np.cos(theta) / (2 * k)  # static overlap: no bounce
-    parts = replace(parts, pos=parts.pos - jnp.array([0.0, d0]))
-    state = make_state(parts, make_walls([wall((0.0, 0.0), (0.0, 1.0))]), pair_capacity=1)
-    grid = make_grid((-0.5, -0.5), (3.0, 0.5), float(parts.bound_radius[0]), 2e-3)
+    """The block on an incline of tests/test_integrate.py: (start, final, params, m g)."""
+    from test_integrate import incline_block
+
+    state, params, grid, weight = incline_block(theta, mu)
     start, final = _run(state, params, grid, int(t_end / float(params.dt)), n_rec=20)
-    return start, final, params, m * g
+    return start, final, params, weight
 
 
 def test_friction_term_is_coulomb_force_times_sliding_distance():

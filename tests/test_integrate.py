@@ -128,8 +128,9 @@ def test_restitution_matches_target(target):
     assert e == pytest.approx(target, rel=0.02)
 
 
-def _incline(theta, mu, t_end):
-    """A square block resting on a floor with gravity tilted by theta (== an incline)."""
+def incline_block(theta, mu):
+    """A square block resting on a floor with gravity tilted by theta (== an incline), at
+    its static overlap so it does not bounce: ``(state, params, grid, weight m g)``."""
     h, r, k = 0.01, 5e-4, 2e4
     block = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float) + [0.0, r]
     parts = particles_from_polygons([block], r, RHO)
@@ -146,16 +147,20 @@ def _incline(theta, mu, t_end):
     )
     dt = stable_time_step(parts, params, safety=0.1)
     params = replace(params, dt=jnp.asarray(dt))
-    # start at the static overlap so the block does not bounce
     d0 = m * g * np.cos(theta) / (2 * k)
     parts = replace(parts, pos=parts.pos - jnp.array([0.0, d0]))
     state = make_state(parts, walls, pair_capacity=1)
     grid = make_grid((-0.5, -0.5), (3.0, 0.5), float(parts.bound_radius[0]), 2e-3)
+    return state, params, grid, m * g
+
+
+def _incline(theta, mu, t_end):
+    state, params, grid, weight = incline_block(theta, mu)
     state, _ = prepare(state, params, grid)
-    n = int(t_end / dt)
+    n = int(t_end / float(params.dt))
     final, rec, err = run_segment(state, params, grid, 20, -(-n // 20))
     assert int(err) == 0
-    return state, final, rec, g
+    return state, final, rec, 9.81
 
 
 def test_block_sticks_below_friction_angle():
