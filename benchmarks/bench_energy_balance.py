@@ -24,7 +24,6 @@ import argparse
 import dataclasses
 import datetime
 import json
-import math
 import os
 import sys
 import time
@@ -46,38 +45,23 @@ def brazilian(n_cells: int, seed: int, quick: bool, **overrides) -> dict:
     """The bonded Brazilian disc to its post-peak stop, with the balance per segment;
     ``overrides`` change the scene's Config (e.g. friction and damping off)."""
     from jaxgran import energy
-    from jaxgran import ensemble as ens
     from jaxgran.scenes import bonded_brazilian as bb
 
     base = dataclasses.replace(bb.Config(), **bb.QUICK) if quick else bb.Config()
     cfg = dataclasses.replace(base, n_cells=n_cells, seed=seed, **overrides)
     setup = bb.build(cfg)
     params = setup.params
-    state = energy.attach(setup.states[0], params, setup.grid)
-    dt = float(params.dt)
-    n_steps = int(math.ceil(cfg.max_strain / cfg.strain_rate / dt))
-    stopper = bb._stopper(cfg, 1, False)
+    setup.states[0] = energy.attach(setup.states[0], params, setup.grid)
     rows: list[dict] = []
 
     def callback(s, rec):
-        force, gap = bb.platen_force(rec)
-        bal = energy.balance(s, params)
-        rows.append({"time": float(s.time), "force_N": float(force[-1]), **bal})
-        return stopper(s, rec)
+        force, _ = bb.platen_force(rec)
+        rows.append(
+            {"time": float(s.time), "force_N": float(force[-1]), **energy.balance(s, params)}
+        )
 
     t0 = time.perf_counter()
-    res = ens.drive(
-        state,
-        params,
-        setup.controls[0],
-        setup.grid,
-        n_steps=n_steps,
-        record_every=cfg.record_every,
-        records_per_segment=cfg.records_per_segment,
-        callback=callback,
-        progress=True,
-        desc=f"energy bonded-brazilian seed {seed}",
-    )
+    res, _ = bb.simulate_test(cfg, progress=True, setup=setup, callback=callback)
     wall = time.perf_counter() - t0
     final = energy.balance(res.state, params)
     i_peak = max(range(len(rows)), key=lambda i: rows[i]["force_N"])
@@ -87,7 +71,7 @@ def brazilian(n_cells: int, seed: int, quick: bool, **overrides) -> dict:
         "config": {"n_cells": n_cells, "seed": seed, "dt_safety": cfg.dt_safety, **overrides},
         "n_bonds_broken": int(bb.bd.n_broken(res.state)),
         "steps": int(res.steps),
-        "dt_s": dt,
+        "dt_s": float(params.dt),
         "wall_time_s": wall,
         "peak": rows[i_peak],
         "final": final,

@@ -100,22 +100,12 @@ def _jaxgran_commit() -> str:
         return "unknown"
 
 
-def _kinetic_energy(state) -> float:
-    """Translational + rotational KE of the active particles (J), as ``simulate.record``."""
-    p = state.particles
-    act = np.asarray(p.active)
-    m = np.asarray(p.mass)[act]
-    v = np.asarray(p.vel)[act]
-    i = np.asarray(p.inertia)[act]
-    w = np.asarray(p.omega)[act]
-    return float(0.5 * np.sum(m * np.sum(v**2, axis=1)) + 0.5 * np.sum(i * w**2))
-
-
 @functools.cache
 def _probe_class():
     """The ``DsmBreakage`` subclass (defined lazily: jaxgran is imported after x64 is set)."""
     from jaxgran.breakage.dsm import DsmBreakage
     from jaxgran.breakage.replace import Replacement, max_overlap, replace_particles
+    from jaxgran.energy import kinetic_energy
 
     class _ErosionProbe(DsmBreakage):
         """The scene's DSM breakage (fragments eroded by ``self.erosion``, from
@@ -132,13 +122,13 @@ def _probe_class():
             )
 
         def apply(self, state, decisions):
-            ke0 = _kinetic_energy(state)
+            ke0 = float(kinetic_energy(state))
             ov0 = np.asarray(max_overlap(state))
             f0 = np.linalg.norm(np.asarray(state.particles.force), axis=1)
             dry = {m: self._replace(state, decisions, m)[1] for m in MODES}
             n0 = len(self.events)
             new = super().apply(state, decisions)  # the scene's path, erosion=cfg.erosion
-            ke1 = _kinetic_energy(new)
+            ke1 = float(kinetic_energy(new))
             ov1 = np.asarray(max_overlap(new))
             f1 = np.linalg.norm(np.asarray(new.particles.force), axis=1)
             for j, ev in enumerate(self.events[n0:]):

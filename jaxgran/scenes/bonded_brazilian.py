@@ -176,15 +176,29 @@ def _stopper(cfg: Config, n_real: int, batched: bool):
     return callback
 
 
+def _chain(first, stopper):
+    if first is None:
+        return stopper
+
+    def both(state, rec):
+        first(state, rec)
+        return stopper(state, rec)
+
+    return both
+
+
 def simulate_test(
     cfg: Config,
     *,
     progress: bool = False,
     setup: Setup | None = None,
     params_batched: bool = False,
+    callback=None,
 ):
     """Run the test (all realisations); returns ``(EnsembleResult, Setup)``. With
-    ``params_batched`` ``setup.params`` is stacked like the states (a contact-law sweep)."""
+    ``params_batched`` ``setup.params`` is stacked like the states (a contact-law sweep).
+    ``callback(state, records)`` runs on the host after each segment, before the post-peak
+    stopping rule (e.g. to sample an energy ledger)."""
     setup = setup or build(cfg)
     k = len(setup.states)
     batched = k > 1
@@ -205,7 +219,7 @@ def simulate_test(
         records_per_segment=cfg.records_per_segment,
         batched=batched,
         params_batched=params_batched,
-        callback=_stopper(cfg, k, batched),
+        callback=_chain(callback, _stopper(cfg, k, batched)),
         frame_every=max(1, n_steps // (cfg.record_every * cfg.records_per_segment * 10)),
         progress=progress,
         desc=SCENE,
