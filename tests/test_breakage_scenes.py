@@ -55,6 +55,11 @@ def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
     # takes (caps where neighbours overlap, rounded new corners) stays near 1 %
     eroded = sum(float(e["eroded_mass"]) for e in brk.events) / info["initial_mass"]
     assert 0.0 <= eroded < 0.02
+    # one areal density and no compensation: the mass lost is the area lost
+    assert s["area_lost_fraction"] == pytest.approx(s["mass_lost_fraction"], rel=1e-9)
+    assert s["mass_fines_fraction"] + s["mass_eroded_fraction"] == pytest.approx(
+        s["mass_lost_fraction"], rel=1e-9
+    )
     m0 = info["mean_initial_mass"]
     for ev in brk.events:
         # pieces dropped as fines count as fragments of the mean fines mass (metrics docstring)

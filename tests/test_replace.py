@@ -11,6 +11,7 @@ from jaxgran import geometry as geo
 from jaxgran.breakage.replace import (
     dilated_outline,
     max_overlap,
+    merge_small_pieces,
     replace_particle,
 )
 from jaxgran.breakage.ssm import split_convex
@@ -111,6 +112,36 @@ def test_erosion_by_the_overlap_is_exact_and_areas_add_up():
     assert ev["eroded_mass"] == pytest.approx(ev["parent_mass"] - 2 * expected, rel=1e-12)
 
 
+def test_density_compensation_keeps_the_mass_of_each_piece():
+    """conserve_mass: the square cut in half and eroded keeps half the parent's mass in
+    each fragment (density raised by the eroded fraction); the area lost is the same as
+    without compensation, and mass and inertia stay consistent (I = rho_f J)."""
+    delta = 2e-4
+    events = {}
+    for conserve in (False, True):
+        state = _state([_square()], capacity=2)
+        state, ev = replace_particle(
+            state,
+            0,
+            _cut(state, 0, [[[0, -1], [0, 1]]]),
+            overlap=delta,
+            clearance=0.0,
+            conserve_mass=conserve,
+        )
+        events[conserve] = (state, ev)
+    (_, plain), (state, comp) = events[False], events[True]
+    np.testing.assert_allclose(comp["fragment_masses"], comp["parent_mass"] / 2, rtol=1e-12)
+    assert abs(comp["mass_lost"]) < 1e-14 * comp["parent_mass"]
+    assert comp["area_lost"] == pytest.approx(plain["area_lost"], rel=1e-12)
+    assert plain["eroded_mass"] == pytest.approx(RHO * plain["area_lost"], rel=1e-9)
+    p = state.particles
+    for s, m in zip(comp["fragment_slots"], comp["fragment_masses"], strict=True):
+        core = np.asarray(p.verts[s, : int(p.n_verts[s])])
+        area, _, polar = geo.spheropolygon_mass_properties(core, R, 1.0)
+        assert float(p.mass[s]) == pytest.approx(m, rel=1e-12)
+        assert float(p.inertia[s]) == pytest.approx(m / area * polar, rel=1e-12)
+
+
 def test_fines_are_counted_and_mass_adds_up():
     """A hexagon cut by three lines, one of them chipping a corner below min_area."""
     core = geo.regular_polygon(6, 0.01)
@@ -120,7 +151,9 @@ def test_fines_are_counted_and_mass_adds_up():
     areas = np.array([geo.polygon_area(q) for q in pieces])
     assert len(pieces) == 6 and np.sum(areas < 2e-5) == 2  # two chips, four large pieces
     small = areas[areas < 2e-5].sum()
-    state, ev = replace_particle(state, 0, pieces, overlap=1e-5, min_area=2e-5)
+    state, ev = replace_particle(
+        state, 0, pieces, overlap=1e-5, min_area=2e-5, small_pieces="fines"
+    )
     assert ev["n_fines"] == 2
     assert ev["fragment_masses"].size == len(pieces) - ev["n_fines"]
     total = ev["fragment_masses"].sum() + ev["fines_mass"] + ev["eroded_mass"]
@@ -136,6 +169,86 @@ def test_fines_are_counted_and_mass_adds_up():
         assert geo.spheropolygon_mass_properties(_world_core(state, s), R, RHO)[0] == (
             pytest.approx(m, rel=1e-12)
         )
+
+
+def test_small_pieces_merge_into_their_neighbour_and_no_mass_becomes_fines():
+    """The same two chips, merged (the default): each joins the piece across its longest
+    edge, the union is exact, and the parent's mass = fragments + erosion."""
+    core = geo.regular_polygon(6, 0.01)
+    lines = [[[0, -1], [0, 1]], [[-1, 0.002], [1, 0.002]], [[0.0085, -1], [0.0095, 1]]]
+    state = _state([core], capacity=4)
+    pieces = _cut(state, 0, lines)
+    state, ev = replace_particle(state, 0, pieces, overlap=1e-5, min_area=2e-5)
+    assert ev["kind"] == "breakage"
+    assert ev["n_merged"] == 2 and ev["n_fines"] == 0 and ev["fines_mass"] == 0.0
+    assert ev["fragment_masses"].size == 4
+    total = ev["fragment_masses"].sum() + ev["eroded_mass"]
+    assert total == pytest.approx(ev["parent_mass"], rel=1e-14)
+    # what the merge keeps: against dropping the chips, the fragments gain the chips' mass
+    # less their erosion
+    state2 = _state([core], capacity=4)
+    _, ev2 = replace_particle(
+        state2, 0, _cut(state2, 0, lines), overlap=1e-5, min_area=2e-5, small_pieces="fines"
+    )
+    gain = ev["fragment_masses"].sum() - ev2["fragment_masses"].sum()
+    assert 0.5 * ev2["fines_mass"] < gain <= ev2["fines_mass"]
+    for s in ev["fragment_slots"]:
+        assert geo.is_convex(_world_core(state, s))
+
+
+def _convex_union(a, b):
+    from scipy.spatial import ConvexHull
+
+    pts = np.concatenate([a, b])
+    hull = abs(geo.polygon_area(pts[ConvexHull(pts).vertices]))
+    return hull <= (1 + 1e-9) * (abs(geo.polygon_area(a)) + abs(geo.polygon_area(b)))
+
+
+def test_merge_of_random_arrangements_keeps_area_and_convexity():
+    """Random convex polygons cut by 1-6 random lines: merging keeps the total area (1e-12)
+    and convexity, and a piece left below the threshold has no neighbour with which its
+    union would be convex (after earlier merges that can happen, rarely)."""
+    rng = np.random.default_rng(3)
+    n_cases = n_stuck = 0
+    for _ in range(150):
+        poly = geo.regular_polygon(int(rng.integers(3, 9)), 1.0, rng.uniform(0, 6.3))
+        lines = rng.uniform(-1.0, 1.0, (int(rng.integers(1, 7)), 2, 2))
+        pieces = split_convex(poly, lines)
+        if len(pieces) < 2:
+            continue
+        areas = np.array([abs(geo.polygon_area(q)) for q in pieces])
+        thresh = float(np.quantile(areas, 0.4))
+        out, n = merge_small_pieces(pieces, lambda q: abs(geo.polygon_area(q)), thresh)
+        n_cases += n > 0
+        assert len(out) == len(pieces) - n
+        new_areas = np.array([abs(geo.polygon_area(q)) for q in out])
+        assert new_areas.sum() == pytest.approx(areas.sum(), rel=1e-12)
+        assert all(geo.is_convex(q) for q in out)
+        if len(out) > 1:
+            for i in np.flatnonzero(new_areas < thresh):
+                n_stuck += 1
+                nbrs = [b if a == i else a for a, b, _, _ in geo.shared_edges(out) if i in (a, b)]
+                assert not any(_convex_union(out[i], out[j]) for j in nbrs)
+    assert n_cases > 50 and n_stuck < 0.1 * n_cases
+
+
+def test_a_chip_below_the_resolution_does_not_replace_the_particle():
+    """One line clipping a corner below min_area: with merging nothing breaks off, the
+    particle is left as it was and the event says so."""
+    core = geo.regular_polygon(6, 0.01)
+    state = _state([core], capacity=3)
+    pieces = _cut(state, 0, [[[0.0085, -1], [0.0095, 1]]])
+    assert len(pieces) == 2
+    new, ev = replace_particle(state, 0, pieces, min_area=2e-5)
+    assert ev["kind"] == "suppressed" and ev["n_merged"] == 1
+    for name in ("pos", "verts", "mass", "active", "uid"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(new.particles, name)), np.asarray(getattr(state.particles, name))
+        )
+    _, ev_f = replace_particle(state, 0, pieces, min_area=2e-5, small_pieces="fines")
+    assert ev_f["kind"] == "breakage" and ev_f["n_fines"] == 1
+    with pytest.raises(ValueError, match="small_pieces"):
+        replace_particle(state, 0, pieces, small_pieces="drop")
 
 
 # ----------------------------------------------------------------------------- momentum

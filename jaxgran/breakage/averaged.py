@@ -161,7 +161,8 @@ class AveragedStressBreakage(DsmBreakage):
         eps: DSM threshold (Pa) used only by the screening; None: ``calibrate_eps`` of the
             same calibration.
         thickness, poisson_ratio, plane, screen_fraction, min_area, mean_initial_mass,
-        max_contacts, n_arc, max_events: as in :class:`DsmBreakage`.
+        max_contacts, n_arc, max_events, erosion, small_pieces, conserve_mass: as in
+        :class:`DsmBreakage`.
     """
 
     def __init__(
@@ -187,6 +188,8 @@ class AveragedStressBreakage(DsmBreakage):
         n_arc: int = 64,
         max_events: int | None = None,
         erosion: str = "local",
+        small_pieces: str = "merge",
+        conserve_mass: bool = False,
     ) -> None:
         if method not in AVERAGED_METHODS:
             raise ValueError(f"method must be one of {AVERAGED_METHODS}, got {method!r}")
@@ -213,6 +216,8 @@ class AveragedStressBreakage(DsmBreakage):
             n_arc=n_arc,
             max_events=max_events,
             erosion=erosion,
+            small_pieces=small_pieces,
+            conserve_mass=conserve_mass,
         )
         cal = calibrate_strengths(calibration_force, calibration_radius, t)
         self.method = method
@@ -330,12 +335,16 @@ def make_breakage(
     dsm_options: dict[str, Any] | None = None,
     averaged_options: dict[str, Any] | None = None,
     erosion: str = "local",
+    small_pieces: str = "merge",
+    conserve_mass: bool = False,
 ) -> DsmBreakage:
     """Breakage callback for ``--method``: ``"dsm"`` gives a :class:`DsmBreakage` with
     ``eps = calibrate_eps(F, R)``, the others an :class:`AveragedStressBreakage` with
     :func:`calibrate_strengths` of the same F (N), R (m); all break the Brazilian disc at F.
     Extra keyword arguments per family go in ``dsm_options`` / ``averaged_options``;
-    ``erosion`` (``"local"``, ``"uniform"``, ``"none"``) is the fragments' erosion for all."""
+    ``erosion`` (``"local"``, ``"uniform"``, ``"none"``) is the fragments' erosion and
+    ``small_pieces`` (``"merge"``, ``"fines"``) the fate of pieces below ``min_area`` and
+    ``conserve_mass`` the density compensation of the erosion, for all."""
     t = float(params.thickness if thickness is None else thickness)
     common = dict(
         poisson_ratio=poisson_ratio,
@@ -344,6 +353,8 @@ def make_breakage(
         min_area=min_area,
         mean_initial_mass=mean_initial_mass,
         erosion=erosion,
+        small_pieces=small_pieces,
+        conserve_mass=conserve_mass,
     )
     if method == "dsm":
         eps = calibrate_eps(

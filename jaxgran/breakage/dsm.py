@@ -63,7 +63,13 @@ from ..state import (
     replace,
 )
 from .criteria import connection_points, fracture_planes
-from .replace import EROSION_MODES, Replacement, dilated_outline, replace_particles
+from .replace import (
+    EROSION_MODES,
+    SMALL_PIECE_MODES,
+    Replacement,
+    dilated_outline,
+    replace_particles,
+)
 from .ssm import split_convex
 
 log = logging.getLogger(__name__)
@@ -387,6 +393,11 @@ class DsmBreakage:
         max_events: stop the run once this many breakage events happened (None: never).
         erosion: erosion of the fragments, ``"local"`` (default), ``"uniform"`` or
             ``"none"`` (:func:`~jaxgran.breakage.replace.replace_particles`).
+        small_pieces: pieces below ``min_area``: ``"merge"`` (default) into a neighbour, or
+            ``"fines"`` (dropped as lost mass); a decision whose pieces all merge back is not
+            applied and goes to ``self.suppressed``.
+        conserve_mass: fragments keep the mass of their uneroded pieces (density
+            compensation, :func:`~jaxgran.breakage.replace.replace_particles`).
     """
 
     def __init__(
@@ -410,11 +421,19 @@ class DsmBreakage:
         cache_size: int = 256,
         max_events: int | None = None,
         erosion: str = "local",
+        small_pieces: str = "merge",
+        conserve_mass: bool = False,
     ) -> None:
         _check_positive(eps=eps)
         if erosion not in EROSION_MODES:
             raise ValueError(f"erosion must be one of {EROSION_MODES}, got {erosion!r}")
+        if small_pieces not in SMALL_PIECE_MODES:
+            raise ValueError(
+                f"small_pieces must be one of {SMALL_PIECE_MODES}, got {small_pieces!r}"
+            )
         self.erosion = erosion
+        self.small_pieces = small_pieces
+        self.conserve_mass = bool(conserve_mass)
         self.params = params
         self.grid = grid
         self.eps = float(eps)
@@ -439,6 +458,8 @@ class DsmBreakage:
         self.cache_size = int(cache_size)
         self.max_events = max_events
         self.events: list[dict] = []
+        # decisions whose pieces all merged back below the resolution (not replaced)
+        self.suppressed: list[dict] = []
         self.log: list[str] = []
         self.n_calls = 0
         self.n_checked = 0
@@ -518,15 +539,22 @@ class DsmBreakage:
             min_area=self.min_area,
             mean_initial_mass=self.mean_initial_mass,
             erosion=self.erosion,
+            small_pieces=self.small_pieces,
+            conserve_mass=self.conserve_mass,
         )
+        replaced = False
         for d, ev in zip(decisions, events, strict=True):
             ev.update(d.info)
             ev["eps"] = self.eps
+            if ev["kind"] == "suppressed":
+                self.suppressed.append(ev)
+                continue
+            replaced = True
             self._cache.pop(int(ev["parent_uid"]), None)
             if "capacity_growth" in ev:
                 self._note(ev["capacity_growth"])
             self.events.append(ev)
-        return self._prepare(state)
+        return self._prepare(state) if replaced else state
 
     # -------------------------------------------------------------- internals
 

@@ -45,7 +45,12 @@ Mass bookkeeping (per event, areal density ``rho`` of the parent, ``rho = m / A`
     mass of the pieces dropped because their fragment vanished under erosion or fell below
     ``min_area`` (their area measured on the circumscribed outline, which overestimates the
     true piece by less than ``3e-3 r^2``); ``eroded_mass`` is the strip removed by the
-    erosion; ``mass_lost = parent_mass - sum(fragment_masses)`` (fines included).
+    erosion; ``mass_lost = parent_mass - sum(fragment_masses)`` (fines included). Pieces
+    below ``min_area`` are merged into a neighbouring piece by default
+    (``small_pieces="merge"``, :func:`merge_small_pieces`), so fines occur only where a
+    piece has no neighbour to join. With ``conserve_mass`` each fragment keeps the mass of
+    its uneroded piece (density raised by the eroded fraction) and ``eroded_mass`` is 0 up
+    to round-off; ``area_lost`` (m^2) records the geometric loss in every mode.
 
 Kinematics: a fragment takes the parent's rigid-body velocity field at its centroid,
 ``v_f = v + omega x (c_f - x)``, and ``omega_f = omega``. Linear and angular momentum are
@@ -78,6 +83,7 @@ __all__ = [
     "Replacement",
     "dilated_outline",
     "fragment_cores",
+    "merge_small_pieces",
     "contact_halfplanes",
     "max_overlap",
     "replace_particle",
@@ -86,6 +92,8 @@ __all__ = [
 
 # Erosion of the fragments (replace_particles): local clipping, uniform, or none.
 EROSION_MODES = ("local", "uniform", "none")
+# Pieces below the smallest fragment: merged into a neighbour, or dropped as fines.
+SMALL_PIECE_MODES = ("merge", "fines")
 
 # Clearance added to the erosion, relative to the parent's bounding radius: keeps the first
 # contact after creation at a (tiny) positive gap despite round-off.
@@ -217,6 +225,70 @@ def fragment_cores(
     return out
 
 
+def merge_small_pieces(
+    pieces: Sequence[npt.ArrayLike], kept_area, min_area: float
+) -> tuple[list[np.ndarray], int]:
+    """Merge the pieces that would fall below ``min_area`` into a neighbour (m, m^2).
+
+    The fracture planes cut the outline into the cells of a line arrangement. Two cells that
+    share an edge differ in the side of one line only, so their union is the convex region
+    with the same sides of all other lines: merging them is exact (their convex hull, whose
+    area is checked against the sum). The smallest piece below ``min_area`` (its area as
+    ``kept_area(piece)`` measures it after clipping and erosion, 0 where it vanishes) joins the
+    neighbour with which it shares the longest edge (after earlier merges a union may not be
+    convex: the next neighbour is tried); this repeats until every piece is large enough, or
+    a small piece has no neighbour it merges with (it stays, to become fines), or one piece
+    is left (the planes cut nothing above the resolution).
+
+    Args:
+        pieces: convex CCW pieces ``[m_i, 2]`` (m) of one parent's outline.
+        kept_area: callable, piece -> area (m^2) of the fragment it would become.
+        min_area: smallest fragment area kept (m^2).
+
+    Returns:
+        ``(pieces, n_merged)``.
+    """
+    from scipy.spatial import ConvexHull
+
+    out = [np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in pieces]
+    if min_area <= 0.0 or len(out) < 2:
+        return out, 0
+    areas = [kept_area(q) if len(q) >= 3 else 0.0 for q in out]
+    stuck: set[int] = set()
+    n_merged = 0
+    while len(out) > 1:
+        small = [i for i, a in enumerate(areas) if a < min_area and i not in stuck]
+        if not small:
+            break
+        i = min(small, key=lambda m: areas[m])
+        nbrs = sorted(
+            (
+                (float(np.linalg.norm(q - p)), b if a == i else a)
+                for a, b, p, q in geo.shared_edges(out)
+                if i in (a, b)
+            ),
+            reverse=True,
+        )
+        hull = None
+        for _, best in nbrs:
+            pts = np.concatenate([out[i], out[best]])
+            cand = pts[ConvexHull(pts).vertices]
+            total = abs(geo.polygon_area(out[i])) + abs(geo.polygon_area(out[best]))
+            if abs(abs(geo.polygon_area(cand)) - total) <= 1e-9 * total:
+                hull = cand  # the union is convex
+                break
+        if hull is None:  # no neighbour whose union with it is convex: it stays
+            stuck.add(i)
+            continue
+        merged = _clean_convex(hull)
+        keep = [m for m in range(len(out)) if m not in (i, best)]
+        stuck = set()  # the neighbours changed: try the stuck pieces again
+        out = [out[m] for m in keep] + [merged]
+        areas = [areas[m] for m in keep] + [kept_area(merged)]
+        n_merged += 1
+    return out, n_merged
+
+
 @eqx.filter_jit
 def max_overlap(state: SimState) -> Array:
     """Largest overlap (m) of each particle with any neighbour in the pair list or any wall
@@ -329,6 +401,30 @@ class _Fragment:
     centroid: np.ndarray  # [2] m, world
     mass: float
     inertia: float
+    area: float  # m^2, of the spheropolygon
+
+
+class _PieceCut(NamedTuple):
+    """How an outline piece becomes a fragment core: clipped by the contact half-planes
+    (``normals . x <= offsets``, none when ``normals`` is None), eroded by ``r + delta``."""
+
+    normals: np.ndarray | None
+    offsets: np.ndarray | None
+    r: float
+    delta: float
+
+    def clip(self, q: np.ndarray) -> np.ndarray:
+        if self.normals is None:
+            return q
+        return geo.clip_halfplanes(q, self.normals, self.offsets)
+
+    def core(self, clipped: np.ndarray) -> np.ndarray | None:
+        return None if len(clipped) < 3 else fragment_cores([clipped], self.r, self.delta)[0]
+
+    def kept_area(self, q: np.ndarray) -> float:
+        """Area (m^2) of the fragment the piece ``q`` becomes, 0 if it vanishes."""
+        core = self.core(self.clip(q))
+        return 0.0 if core is None else _spheropolygon_area(core, self.r)
 
 
 def _spheropolygon_area(core: np.ndarray, radius: float) -> float:
@@ -377,6 +473,8 @@ def replace_particles(
     mean_initial_mass: float | None = None,
     growth: float = _GROWTH,
     erosion: str = "local",
+    small_pieces: str = "merge",
+    conserve_mass: bool = False,
 ) -> tuple[SimState, list[dict]]:
     """Replace several particles by their fragments at once (see :func:`replace_particle`).
 
@@ -385,7 +483,7 @@ def replace_particles(
         replacements: one :class:`Replacement` per broken particle (distinct slots).
         radius: sphero-radius of the fragments (m); default the parent's.
         areal_density: kg/m^2 of the fragments; default the parent's, ``mass / area``.
-        min_area: fragments with a smaller area (m^2, after erosion) become fines.
+        min_area: smallest fragment area kept (m^2, after erosion); see ``small_pieces``.
         overlap: ``[P]`` erosion beyond ``r`` (m) per slot, taken off all round; given, it
             overrides ``erosion``.
         clearance: added to the erosion (m); default ``1e-9`` x the parent's bound radius.
@@ -397,10 +495,22 @@ def replace_particles(
         mean_initial_mass: mean particle mass at t = 0 (kg), for the breakage type (paper 000
             Table III); without it the type is not classified.
         growth: factor by which the particle capacity grows when free slots run out.
+        small_pieces: what becomes of a piece below ``min_area``: ``"merge"`` (default) joins
+            it to the neighbouring piece across its longest fracture segment
+            (:func:`merge_small_pieces`), so material below the resolution stays in the
+            fragments; ``"fines"`` drops it as lost mass (counted as ``fines_mass``). A piece
+            without a neighbour becomes fines in both modes. When merging leaves a single
+            piece, the particle is not replaced: its event has ``kind = "suppressed"``.
+        conserve_mass: give each fragment the mass of its uneroded outline piece (the
+            parent's mass shared by piece area) through a slightly higher areal density, so
+            the erosion removes area but no mass (paper 000 §III: "this loss of mass can also
+            be compensated by slightly increasing the density"). The area removed is
+            ``area_lost`` in the event either way; fines still lose their share.
 
     Returns:
         ``(state, events)``: the new state (call :func:`jaxgran.simulate.prepare` before
-        stepping) and one event dict per replacement.
+        stepping) and one event dict per replacement (``kind`` ``"breakage"`` or
+        ``"suppressed"``).
     """
     if not replacements:
         return state, []
@@ -415,6 +525,8 @@ def replace_particles(
             raise ValueError(f"slot {k} is not an active particle (capacity {n_p})")
     if erosion not in EROSION_MODES:
         raise ValueError(f"erosion must be one of {EROSION_MODES}, got {erosion!r}")
+    if small_pieces not in SMALL_PIECE_MODES:
+        raise ValueError(f"small_pieces must be one of {SMALL_PIECE_MODES}, got {small_pieces!r}")
     local = overlap is None and erosion == "local"
     mode = erosion if overlap is None else "uniform"  # a given overlap is taken off all round
     if overlap is None and erosion == "none":
@@ -436,26 +548,40 @@ def replace_particles(
         clear = _CLEARANCE_REL * float(arr["bound_radius"][k]) if clearance is None else clearance
         delta = max(float(overlap[k]), 0.0) + float(clear)
         pieces = [np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in rep.pieces]
-        n_clips = 0
-        if local:
-            normals, offsets = contact_halfplanes(state, k)
-            n_clips = len(offsets)
-            clipped = [geo.clip_halfplanes(q, normals, offsets) for q in pieces]
-        else:
-            clipped = pieces
-        cores = [None if len(q) < 3 else fragment_cores([q], r, delta)[0] for q in clipped]
+        normals, offsets = contact_halfplanes(state, k) if local else (None, None)
+        n_clips = len(offsets) if local else 0
+        cut = _PieceCut(normals, offsets, r, delta)
+        n_merged = 0
+        if small_pieces == "merge":
+            pieces, n_merged = merge_small_pieces(pieces, cut.kept_area, min_area)
+        if n_merged and len(pieces) == 1:  # nothing above the resolution breaks off
+            plans.append((k, None, n_merged, len(rep.pieces)))
+            continue
+        clipped = [cut.clip(q) for q in pieces]
+        cores = [cut.core(q) for q in clipped]
         frags: list[_Fragment] = []
         fines_area = 0.0
-        for piece, core in zip(clipped, cores, strict=True):
+        # share of the parent's mass per outline piece (conserve_mass), before clipping
+        piece_area = np.array([abs(geo.polygon_area(q)) if len(q) >= 3 else 0.0 for q in pieces])
+        share = m_parent * piece_area / max(piece_area.sum(), np.finfo(float).tiny)
+        fines_share = 0.0
+        for piece, core, m_share in zip(clipped, cores, share, strict=True):
             area = None if core is None else _spheropolygon_area(core, r)
             if core is None or area < min_area:
                 fines_area += abs(geo.polygon_area(piece)) if len(piece) >= 3 else 0.0
+                fines_share += m_share
                 continue
-            m, c, inertia = geo.spheropolygon_mass_properties(core, r, rho)
-            frags.append(_Fragment(core - c, c, m, inertia))
-        plans.append((k, r, rho, delta, frags, fines_area, m_parent, rep, n_clips))
+            rho_f = m_share / area if conserve_mass else rho
+            m, c, inertia = geo.spheropolygon_mass_properties(core, r, rho_f)
+            frags.append(_Fragment(core - c, c, m, inertia, area))
+        fines_mass = fines_share if conserve_mass else rho * fines_area
+        plans.append(
+            (k, r, rho, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged)
+        )
 
     # 2. capacity: free slots and vertex slots
+    suppressed = {pl[0]: pl for pl in plans if pl[1] is None}
+    plans = [pl for pl in plans if pl[1] is not None]
     needed = sum(max(len(pl[4]) - 1, 0) for pl in plans)
     free = np.flatnonzero(~arr["active"]).tolist()
     v_need = max([len(f.core_body) for pl in plans for f in pl[4]] + [n_v])
@@ -477,9 +603,9 @@ def replace_particles(
     # 3. write fragments
     next_uid = int(arr["uid"].max()) + 1
     touched: list[int] = []
-    events = []
+    events = {}
     free_iter = iter(free)
-    for k, r, rho, delta, frags, fines_area, m_parent, rep, n_clips in plans:
+    for k, r, _rho, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged in plans:
         pos_k = arr["pos"][k].copy()
         vel_k = arr["vel"][k].copy()
         om_k = float(arr["omega"][k])
@@ -520,7 +646,7 @@ def replace_particles(
             arr["torque"][k] = 0.0
             touched.append(k)
         masses = np.array([f.mass for f in frags])
-        fines_mass = rho * fines_area
+        areas = np.array([f.area for f in frags])
         lost = m_parent - float(masses.sum())
         planes = np.zeros((0, 2, 2)) if rep.planes is None else np.asarray(rep.planes, float)
         event = {
@@ -531,11 +657,16 @@ def replace_particles(
             "fragment_uids": np.array(uids, dtype=np.int64),
             "fragment_slots": np.array(slots[: len(frags)], dtype=np.int64),
             "fragment_masses": masses,
+            "fragment_areas": areas,
             "parent_mass": m_parent,
+            "parent_area": a_parent,
+            "area_lost": a_parent - float(areas.sum()),
+            "conserve_mass": conserve_mass,
             "mass_lost": lost,
             "fines_mass": fines_mass,
             "eroded_mass": lost - fines_mass,
-            "n_fines": len(rep.pieces) - len(frags),
+            "n_fines": len(rep.pieces) - n_merged - len(frags),
+            "n_merged": n_merged,
             "erosion": delta,
             "erosion_mode": mode,
             "n_contact_clips": n_clips,
@@ -549,7 +680,18 @@ def replace_particles(
         if grew:
             event["capacity_growth"] = msg
             grew = []  # report it once
-        events.append(event)
+        events[k] = event
+    for k, _, n_merged, n_pieces in suppressed.values():
+        events[k] = {
+            "kind": "suppressed",
+            "time": time,
+            "parent_uid": int(arr["uid"][k]),
+            "parent_slot": k,
+            "n_pieces": n_pieces,
+            "n_merged": n_merged,
+            "position": arr["pos"][k].copy(),
+        }
+    events = [events[k] for k in idx]
 
     # 4. new state: particles, and contacts with the history of touched slots cleared
     dtypes = {f.name: getattr(p, f.name).dtype for f in dataclasses.fields(p)}
@@ -631,6 +773,8 @@ def replace_particle(
     planes: npt.ArrayLike | None = None,
     growth: float = _GROWTH,
     erosion: str = "local",
+    small_pieces: str = "merge",
+    conserve_mass: bool = False,
 ) -> tuple[SimState, dict]:
     """Replace particle ``k`` by fragments (paper 000 §II.D; erosion rule in the module doc).
 
@@ -659,6 +803,8 @@ def replace_particle(
         mean_initial_mass: mean initial particle mass (kg) for the breakage type.
         planes: ``[k, 2, 2]`` fracture planes (m), stored in the event.
         growth: capacity growth factor.
+        small_pieces: ``"merge"`` (default) or ``"fines"``, see :func:`replace_particles`.
+        conserve_mass: density compensation of the erosion, see :func:`replace_particles`.
 
     Returns:
         ``(state, event)``. The event holds ``time`` (s), ``parent_uid``,
@@ -683,5 +829,7 @@ def replace_particle(
         mean_initial_mass=mean_initial_mass,
         growth=growth,
         erosion=erosion,
+        small_pieces=small_pieces,
+        conserve_mass=conserve_mass,
     )
     return state, events[0]

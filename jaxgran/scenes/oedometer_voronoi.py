@@ -75,6 +75,8 @@ class Config:
     n_elements: int = 64
     n_points: int = 200
     erosion: str = "local"  # fragments' erosion: local, uniform, none
+    small_pieces: str = "merge"  # pieces below min_fragment_fraction: merge or fines
+    conserve_mass: bool = False  # density compensation of the erosion
     seed: int = 0
 
 
