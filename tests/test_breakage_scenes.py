@@ -71,6 +71,9 @@ def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
         assert metrics.event_breakage_type(ev, m0) == want
         assert np.asarray(ev["planes"]).shape[0] == 1  # split-cell: one plane
     assert len(s["ke_spikes"]) == s["n_events"]
+    assert len(s["speed_spikes"]) == s["n_events"]
+    q = s["quiet_speed"]
+    assert 0 < q["n"] < len(load.series["time"]) and 0.0 <= q["fraction_above"] <= 1.0
     assert s["snapshot_times_s"][0] == 0.0 and len(s["snapshot_times_s"]) == 4
     rel = oc.relative_mass(load.series["time"], brk.events, info["initial_mass"])
     assert rel[-1] == pytest.approx(1.0 - s["mass_lost_fraction"])

@@ -98,3 +98,19 @@ def test_kinetic_energy_spike_peak_and_exponential_decay():
     assert sp["peak"] == pytest.approx(base + amp)
     assert sp["ratio"] == pytest.approx(10.0)
     assert sp["decay_s"] == pytest.approx(tau + 0.01, abs=2e-3)
+
+
+def test_quiet_speeds_leave_out_the_window_after_each_event():
+    """A steady 0.5 mm/s with 2 mm/s bursts right after two events: the quiet records are
+    those outside the windows, all at 0.5 mm/s, none above 1 mm/s; a burst outside a
+    window counts."""
+    t = np.linspace(0.0, 10.0, 1001)
+    v = np.full_like(t, 5e-4)
+    for te in (2.0, 6.0):
+        v[(t > te) & (t < te + 0.3)] = 2e-3
+    q = metrics.quiet_speeds(t, v, [2.0, 6.0], window=0.5, limit=1e-3)
+    assert q["n"] == 1001 - 2 * 49
+    assert q["median"] == pytest.approx(5e-4) and q["max"] == pytest.approx(5e-4)
+    assert q["fraction_above"] == 0.0
+    q = metrics.quiet_speeds(t, v, [2.0], window=0.5, limit=1e-3)
+    assert q["fraction_above"] == pytest.approx(29 / (1001 - 49))

@@ -318,3 +318,37 @@ def kinetic_energy_spikes(
             }
         )
     return out
+
+
+def quiet_speeds(
+    time: npt.ArrayLike,
+    speed: npt.ArrayLike,
+    event_times: npt.ArrayLike,
+    *,
+    window: float,
+    limit: float,
+) -> dict[str, float]:
+    """Mean particle speed away from breakage events (paper 000 Fig. 8b).
+
+    The records at least ``window`` (s) after every event (and any time before the first)
+    are the quiet ones; returns their count ``n``, ``median`` and ``p95`` speed (m/s), the
+    ``fraction_above`` ``limit`` (m/s, e.g. the bar speed), and the ``max``.
+    """
+    t = np.asarray(time, float).ravel()
+    v = np.asarray(speed, float).ravel()
+    te = np.asarray(event_times, float).ravel()
+    quiet = np.ones(t.shape, bool)
+    for e in te.tolist():
+        quiet &= ~((t > e) & (t < e + window))
+    q = v[quiet]
+    if q.size == 0:
+        nan = float("nan")
+        return {"n": 0, "median": nan, "p95": nan, "max": nan, "fraction_above": nan}
+    return {
+        "n": int(q.size),
+        "median": float(np.median(q)),
+        "p95": float(np.quantile(q, 0.95)),
+        "max": float(q.max()),
+        "fraction_above": float(np.mean(q > limit)),
+    }
+

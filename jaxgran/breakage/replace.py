@@ -102,6 +102,8 @@ _CLEARANCE_REL = 1e-9
 # the chord of their neighbours, are dropped (removing a vertex of a convex polygon only
 # shrinks it, so this never creates an overlap).
 _CLEAN_REL = 1e-9
+# Pieces below this x min_area are dust (merge_small_pieces): merged only to fill a notch.
+_DUST_REL = 1e-3
 # Default capacity growth factor when the free slots run out.
 _GROWTH = 2.0
 
@@ -238,7 +240,12 @@ def merge_small_pieces(
     neighbour with which it shares the longest edge (after earlier merges a union may not be
     convex: the next neighbour is tried); this repeats until every piece is large enough, or
     a small piece has no neighbour it merges with (it stays, to become fines), or one piece
-    is left (the planes cut nothing above the resolution).
+    is left (the planes cut nothing above the resolution). Dust, pieces under ``1e-3 x
+    min_area`` (slivers where three lines nearly meet), is not merged on its own: joined to
+    one neighbour it would leave a hairline notch that keeps the next small piece from
+    merging anywhere. It joins a merge whose convex hull it fills (the two pieces and the
+    dust between them add up to the hull's area); dust left over becomes fines (a
+    negligible mass).
 
     Args:
         pieces: convex CCW pieces ``[m_i, 2]`` (m) of one parent's outline.
@@ -254,10 +261,13 @@ def merge_small_pieces(
     if min_area <= 0.0 or len(out) < 2:
         return out, 0
     areas = [kept_area(q) if len(q) >= 3 else 0.0 for q in out]
+    # dust: slivers where lines nearly meet at one point; merged alone, they would leave a
+    # hairline notch that makes later unions non-convex (see the docstring)
+    dust = [abs(geo.polygon_area(q)) < _DUST_REL * min_area if len(q) >= 3 else True for q in out]
     stuck: set[int] = set()
     n_merged = 0
     while len(out) > 1:
-        small = [i for i, a in enumerate(areas) if a < min_area and i not in stuck]
+        small = [i for i, a in enumerate(areas) if a < min_area and i not in stuck and not dust[i]]
         if not small:
             break
         i = min(small, key=lambda m: areas[m])
@@ -265,28 +275,49 @@ def merge_small_pieces(
             (
                 (float(np.linalg.norm(q - p)), b if a == i else a)
                 for a, b, p, q in geo.shared_edges(out)
-                if i in (a, b)
+                if i in (a, b) and not dust[b if a == i else a]
             ),
             reverse=True,
         )
-        hull = None
+        hull, absorbed = None, []
         for _, best in nbrs:
             pts = np.concatenate([out[i], out[best]])
             cand = pts[ConvexHull(pts).vertices]
+            a_hull = abs(geo.polygon_area(cand))
             total = abs(geo.polygon_area(out[i])) + abs(geo.polygon_area(out[best]))
-            if abs(abs(geo.polygon_area(cand)) - total) <= 1e-9 * total:
-                hull = cand  # the union is convex
+            # dust inside the hull fills the notch between the two (exactly, if the areas
+            # add up): it joins the merge
+            inside = [
+                d
+                for d in range(len(out))
+                if dust[d] and _inside_convex(out[d], cand, 1e-9 * math.sqrt(a_hull))
+            ]
+            filled = total + sum(abs(geo.polygon_area(out[d])) for d in inside)
+            if abs(a_hull - total) <= 1e-9 * total:
+                hull, absorbed = cand, []  # the union is convex
+                break
+            if inside and abs(a_hull - filled) <= 1e-9 * filled:
+                hull, absorbed = cand, inside  # convex with the dust between them
                 break
         if hull is None:  # no neighbour whose union with it is convex: it stays
             stuck.add(i)
             continue
         merged = _clean_convex(hull)
-        keep = [m for m in range(len(out)) if m not in (i, best)]
+        keep = [m for m in range(len(out)) if m not in (i, best, *absorbed)]
         stuck = set()  # the neighbours changed: try the stuck pieces again
         out = [out[m] for m in keep] + [merged]
         areas = [areas[m] for m in keep] + [kept_area(merged)]
-        n_merged += 1
+        dust = [dust[m] for m in keep] + [False]
+        n_merged += 1 + len(absorbed)
     return out, n_merged
+
+
+def _inside_convex(points: np.ndarray, poly: np.ndarray, tol: float) -> bool:
+    """Whether all ``points`` lie in the convex CCW polygon ``poly`` (within ``tol``, m)."""
+    e = np.roll(poly, -1, axis=0) - poly
+    rel = points[:, None, :] - poly[None, :, :]
+    cross = e[None, :, 0] * rel[..., 1] - e[None, :, 1] * rel[..., 0]
+    return bool(np.all(cross >= -tol * np.linalg.norm(e, axis=1)[None, :]))
 
 
 @eqx.filter_jit

@@ -336,11 +336,16 @@ def summarize(settle, load, brk, info, cfg) -> dict:
     lost = float(sum(float(e["mass_lost"]) for e in ev))
     series = load.series
     t0 = info["load_start_time"]
+    window = max(0.05 * cfg.load_time, 20 * cfg.record_every * float(info["dt_log"][-1][1]))
+    t_ev = [float(e["time"]) for e in ev]
     spikes = metrics.kinetic_energy_spikes(
-        series["time"],
-        series["kinetic_energy"],
-        [float(e["time"]) for e in ev],
-        window=max(0.05 * cfg.load_time, 20 * cfg.record_every * float(info["dt_log"][-1][1])),
+        series["time"], series["kinetic_energy"], t_ev, window=window
+    )
+    speed_spikes = metrics.kinetic_energy_spikes(
+        series["time"], series["mean_speed"], t_ev, window=window
+    )
+    quiet = metrics.quiet_speeds(
+        series["time"], series["mean_speed"], t_ev, window=window, limit=cfg.bar_speed
     )
     pos = np.asarray(p.pos)[act]
     w = load.state.walls
@@ -383,6 +388,11 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "n_suppressed": len(getattr(brk, "suppressed", [])),
         "mass_bookkeeping_error": abs((mass0 - lost) - mass_final) / mass0,
         "ke_spikes": spikes,
+        # the same measure on the mean speed (m/s): peak and 1/e decay time per event
+        "speed_spikes": speed_spikes,
+        # mean speed (m/s) of the loading records at least `spike_window_s` after any event
+        "quiet_speed": quiet,
+        "spike_window_s": window,
         "escaped": escaped,
         "finite": bool(np.all(np.isfinite(np.asarray(p.pos)[act]))),
         "fracture_planes": {
