@@ -243,9 +243,9 @@ def merge_small_pieces(
     is left (the planes cut nothing above the resolution). Dust, pieces under ``1e-3 x
     min_area`` (slivers where three lines nearly meet), is not merged on its own: joined to
     one neighbour it would leave a hairline notch that keeps the next small piece from
-    merging anywhere. It joins a merge whose convex hull it fills (the two pieces and the
-    dust between them add up to the hull's area); dust left over becomes fines (a
-    negligible mass).
+    merging anywhere. It joins a merge whose convex hull covers it (the two pieces and the
+    dust they cover add up to the hull's area; the part of a dust piece outside the hull is
+    lost, under ``1e-3 x min_area``); dust left over becomes fines (a negligible mass).
 
     Args:
         pieces: convex CCW pieces ``[m_i, 2]`` (m) of one parent's outline.
@@ -285,19 +285,16 @@ def merge_small_pieces(
             cand = pts[ConvexHull(pts).vertices]
             a_hull = abs(geo.polygon_area(cand))
             total = abs(geo.polygon_area(out[i])) + abs(geo.polygon_area(out[best]))
-            # dust inside the hull fills the notch between the two (exactly, if the areas
-            # add up): it joins the merge
-            inside = [
-                d
-                for d in range(len(out))
-                if dust[d] and _inside_convex(out[d], cand, 1e-9 * math.sqrt(a_hull))
-            ]
-            filled = total + sum(abs(geo.polygon_area(out[d])) for d in inside)
+            # dust the hull covers fills the notch between the two: if the hull's excess
+            # over the two pieces is exactly the dust it covers, the dust joins the merge
+            covered = {d: _covered_area(out[d], cand) for d in range(len(out)) if dust[d]}
+            covered = {d: a for d, a in covered.items() if a > 0.0}
+            filled = total + sum(covered.values())
             if abs(a_hull - total) <= 1e-9 * total:
                 hull, absorbed = cand, []  # the union is convex
                 break
-            if inside and abs(a_hull - filled) <= 1e-9 * filled:
-                hull, absorbed = cand, inside  # convex with the dust between them
+            if covered and abs(a_hull - filled) <= 1e-9 * filled:
+                hull, absorbed = cand, sorted(covered)  # convex with the dust between them
                 break
         if hull is None:  # no neighbour whose union with it is convex: it stays
             stuck.add(i)
@@ -312,12 +309,13 @@ def merge_small_pieces(
     return out, n_merged
 
 
-def _inside_convex(points: np.ndarray, poly: np.ndarray, tol: float) -> bool:
-    """Whether all ``points`` lie in the convex CCW polygon ``poly`` (within ``tol``, m)."""
-    e = np.roll(poly, -1, axis=0) - poly
-    rel = points[:, None, :] - poly[None, :, :]
-    cross = e[None, :, 0] * rel[..., 1] - e[None, :, 1] * rel[..., 0]
-    return bool(np.all(cross >= -tol * np.linalg.norm(e, axis=1)[None, :]))
+def _covered_area(piece: np.ndarray, hull: np.ndarray) -> float:
+    """Area (m^2) of ``piece`` inside the convex ``hull``."""
+    try:
+        cut = geo.clip_convex(piece, hull)
+    except ValueError:  # degenerate sliver
+        return 0.0
+    return abs(geo.polygon_area(cut)) if len(cut) >= 3 else 0.0
 
 
 @eqx.filter_jit

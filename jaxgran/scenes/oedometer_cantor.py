@@ -13,8 +13,13 @@ coefficient (not in Table I), and the breakage thresholds calibrated on the Braz
 of the paper (F = 150.79 N, r = 1 cm) at our thickness t = 1 cm. Table I's dt = 5e-4 s is
 far above the explicit stability limit ``sqrt(2 m_min / K_n)`` (about 3e-5 s for a 1 cm
 pentagon and less for its fragments); dt here is ``dt_safety`` times the limit of the
-smallest fragment that is kept (``min_fragment_fraction`` of the mean grain mass; smaller
-pieces become fines and count as lost mass).
+smallest fragment that is kept (``min_fragment_fraction`` of the mean grain mass). A smaller
+piece merges into the neighbouring piece across its fracture segment (``small_pieces =
+"merge"``; a breakage whose pieces all merge back is suppressed and the grain stays whole),
+or is dropped as fines that count as lost mass (``"fines"``). The mass a replacement loses
+is then the rounding of the new corners (sphero-radius ``sphero_radius``) and the caps the
+erosion clips where neighbours overlap (``erosion``); ``conserve_mass`` gives the fragments
+the mass of their uneroded pieces instead (paper 000 §III). See ``docs/stability.md``.
 
 Outputs (summary.json, run.h5 with the event log, figures): snapshots at
 ``snapshot_times`` after the loading starts (paper 000 Fig. 7), the relative mass, mean
