@@ -33,7 +33,7 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from machine import cpu_name  # noqa: E402
+from machine import cpu_name, write_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DISC = {"n_cells": 150, "record_every": 50}
@@ -156,8 +156,7 @@ def main() -> None:
             f"{r['no_checkpoint_lower_bound_MB']:.0f} | {r['grad_finite']} | "
             f"{r['forward_wall_s']:.0f} | {r['grad_wall_s']:.0f} |"
         )
-    Path(args.md).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_table(args.md, lines)
 
 
 if __name__ == "__main__":

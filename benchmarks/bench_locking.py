@@ -29,7 +29,7 @@ from pathlib import Path
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_erosion import MID  # noqa: E402
-from machine import cpu_name  # noqa: E402
+from machine import choices, cpu_name, write_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("dsm", "split-cell", "cross-cut", "mohr-coulomb")
@@ -70,10 +70,7 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    methods = [m for m in args.methods.split(",") if m]
-    for m in methods:
-        if m not in METHODS:
-            raise SystemExit(f"--methods: {m!r} is not one of {', '.join(METHODS)}")
+    methods = choices(args.methods, METHODS, "--methods")
     seeds = [int(s) for s in args.seeds.split(",")]
     rows = []
     for m in methods:
@@ -116,8 +113,7 @@ def main() -> None:
             f"| {m} | {len(sel)} | {sum(r['n_events'] for r in sel)} | "
             f"{sum(r['n_repeats'] for r in sel)} | {sum(r['n_locking_chains'] for r in sel)} |"
         )
-    Path(args.md).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_table(args.md, lines)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from pathlib import Path
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_erosion import MID  # noqa: E402
-from machine import cpu_name  # noqa: E402
+from machine import choices, cpu_name, write_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {
@@ -93,10 +93,7 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    variants = [v for v in args.variants.split(",") if v]
-    for v in variants:
-        if v not in VARIANTS:
-            raise SystemExit(f"--variants: {v!r} is not one of {', '.join(VARIANTS)}")
+    variants = choices(args.variants, VARIANTS, "--variants")
     seeds = [int(s) for s in args.seeds.split(",")]
     store = Path(args.md).with_suffix(".json")
     if args.replot:
@@ -155,8 +152,7 @@ def main() -> None:
             f"{_mean([r['fines_pct'] for r in sel]):.3f} | "
             f"{_mean([r['area_lost_pct'] for r in sel]):.3f} | {_mean(per):.2f} |"
         )
-    Path(args.md).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_table(args.md, lines)
 
 
 if __name__ == "__main__":

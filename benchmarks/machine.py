@@ -36,3 +36,21 @@ def write_markdown(path, lines: list[str], image: str, alt: str) -> None:
     from pathlib import Path
 
     Path(path).write_text("\n".join([*lines, "", f"![{alt}]({image})", ""]) + "\n")
+
+
+def choices(text: str, known, flag: str) -> list[str]:
+    """The comma-separated names of ``text`` (empty items dropped), each checked against
+    ``known``; a name not in it exits with a message naming ``flag``."""
+    names = [n for n in text.split(",") if n]
+    for n in names:
+        if n not in known:
+            raise SystemExit(f"{flag}: {n!r} is not one of {', '.join(known)}")
+    return names
+
+
+def write_table(path, lines: list[str]) -> None:
+    """Write a results file (``lines`` joined, newline-terminated) and print it."""
+    from pathlib import Path
+
+    Path(path).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
