@@ -24,7 +24,9 @@ def plot_convergence(histories: dict[str, dict], path: Path) -> Path:
         n = np.arange(1, loss.size + 1)
         a1.semilogy(n, loss, label=name)
         a2.semilogy(np.asarray(h["time_s"], float), loss, label=name)
-    a1.set_xlabel("simulations (lab runs; Adam: forward + reverse each)")
+    a1.set_xlabel(
+        "simulations (lab runs; Adam: forward + reverse, Gauss-Newton: forward + tangents)"
+    )
     a2.set_xlabel("wall time (s)")
     for a in (a1, a2):
         a.set_ylabel("loss (best so far)")

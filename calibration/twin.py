@@ -1,9 +1,16 @@
 """Synthetic twin: can the calibration recover known micro-parameters?
 
 Targets are generated with known ("true") parameters on one set of Voronoi seeds; the fit
-starts from a perturbed guess on another set of seeds, by Adam (gradient) and by
-Nelder-Mead (gradient-free baseline) on the same loss. The target uncertainties are the
-standard errors of the truth ensemble means (at least ``--min-uncertainty`` of the value).
+starts from a perturbed guess on another set of seeds, by Gauss-Newton (forward-mode
+Jacobian), by Adam (reverse-mode gradient) and by Nelder-Mead (gradient-free baseline) on
+the same loss. The target uncertainties are the standard errors of the truth ensemble means
+(at least ``--min-uncertainty`` of the value).
+
+Two small ensembles of different seeds differ by their sampling error, so the fit cannot
+land closer to the truth than that error allows. Before fitting, :func:`predicted_recovery`
+linearises the problem at the truth and reports the predicted scatter of every recovered
+group and the error these two seed sets imply; ``within_3_predicted_std`` says whether a
+fit is consistent with it, ``recovered_within_5_percent`` whether it meets 5 %.
 
     python -m calibration.twin --realisations 4 --cells 30 --out twin_out
 
@@ -15,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -47,14 +55,15 @@ def scene_options(cells: int, strain_rate: float, width: float, damping: float) 
     }
 
 
-FIGURES = ("sigma_t", "slope_S", "E_c", "ucs")
+FIGURES = ("sigma_t", "slope_S", "E_c", "nu")
+"""The twin's figures. Poisson's ratio is the one figure that moves strongly with B_n/B_t
+(d log nu / d log(B_n/B_t) ~ 1.2, against 0.1-0.2 for the others): without it B_n/B_t is
+resolved to ~90 % only. The unconfined strength is not used: the short unconfined test
+(``max_strain`` 0.012) stops before the peak, so its maximum would be the final stress."""
 
 
-def make_targets(
-    truth: dict, seeds: list[int], options: dict, min_uncertainty: float, figures=FIGURES
-) -> dict:
-    """Targets (value = ensemble mean over ``seeds`` with the true parameters, uncertainty =
-    its standard error, at least ``min_uncertainty`` x value)."""
+def truth_values(truth: dict, seeds: list[int], options: dict, figures=FIGURES):
+    """Figure names and values ``[n_figures, len(seeds)]`` of the truth ensemble."""
     dummy = {f: {"value": 1.0, "uncertainty": 1.0} for f in figures}
     spec = {"targets": dummy, "initial": truth, "free": FREE} | options
     scenes = sorted({fit.FIGURE_SCENE[f] for f in figures})
@@ -62,14 +71,75 @@ def make_targets(
     _, fwd = fit.make_functions(problem)
     _, (vals, errs) = fwd(np.asarray(problem.z0[problem.free]))
     fit._check(errs)
-    vals = np.asarray(vals)
+    return [t.name for t in problem.targets], np.asarray(vals)
+
+
+def targets_from_values(names, vals, min_uncertainty: float) -> dict:
+    """Targets: value = ensemble mean, uncertainty = its standard error, at least
+    ``min_uncertainty`` x value."""
     k = vals.shape[1]
     out = {}
-    for t, v in zip(problem.targets, vals, strict=True):
+    for name, v in zip(names, vals, strict=True):
         m = float(v.mean())
         se = float(v.std(ddof=1) / np.sqrt(k)) if k > 1 else 0.0
-        out[t.name] = {"value": m, "uncertainty": max(se, min_uncertainty * abs(m))}
+        out[name] = {"value": m, "uncertainty": max(se, min_uncertainty * abs(m))}
     return out
+
+
+def make_targets(
+    truth: dict, seeds: list[int], options: dict, min_uncertainty: float, figures=FIGURES
+) -> dict:
+    """Targets (value = ensemble mean over ``seeds`` with the true parameters, uncertainty =
+    its standard error, at least ``min_uncertainty`` x value)."""
+    names, vals = truth_values(truth, seeds, options, figures)
+    return targets_from_values(names, vals, min_uncertainty)
+
+
+def predicted_recovery(problem: fit.Problem, truth: dict, truth_vals) -> dict:
+    """How well can the fit recover the truth, given that targets and fit use different
+    Voronoi seeds? Linearised at the truth on the fit's seeds (one forward-mode Jacobian):
+    the fit's step is ``dz = A (t - m)`` with ``A = (J^T W J)^-1 J^T W``, ``W = 1 / u^2``
+    (the target uncertainties), ``t`` the targets and ``m`` the fit ensemble's means at the
+    truth. Both ensembles are random samples of the same material, so ``t - m`` has the
+    variance ``s_t^2 / K_t + s_m^2 / K`` (spreads over the seeds) and the recovered log
+    groups scatter with ``cov = A diag(s_t^2 / K_t + s_m^2 / K) A^T``.
+
+    Returns the predicted relative std of each free group (``predicted_relative_std``),
+    the linearised error for these two seed sets (``linearised_error``, relative), the
+    relative spread of each figure over the fit seeds and ``d log figure / d log group``.
+    The 5 % criterion can only be met reliably when the predicted std is below ~2.5 %."""
+    import jax
+    import jax.numpy as jnp
+
+    def means(xx):
+        vals, _ = fit.simulate_all(problem, xx)
+        return vals.mean(axis=1), vals
+
+    z = fit.groups_from_values(truth)[problem.free]
+    jac, vals = jax.jit(jax.jacfwd(means, has_aux=True))(jnp.asarray(z))
+    jac, vals = np.asarray(jac), np.asarray(vals)
+    truth_vals = np.asarray(truth_vals)
+    m, mt = vals.mean(axis=1), truth_vals.mean(axis=1)
+    t = np.array([tt.value for tt in problem.targets])
+    u = np.array([tt.uncertainty for tt in problem.targets])
+    var = (
+        vals.var(axis=1, ddof=1) / vals.shape[1]
+        + truth_vals.var(axis=1, ddof=1) / (truth_vals.shape[1])
+    )
+    w = 1.0 / u**2
+    a = np.linalg.solve(jac.T @ (w[:, None] * jac), jac.T * w)
+    cov = a @ np.diag(var) @ a.T
+    names = [fit.GROUPS[i] for i in problem.free]
+    return {
+        "free": names,
+        "figures": [tt.label for tt in problem.targets],
+        "predicted_relative_std": dict(zip(names, np.sqrt(np.diag(cov)).tolist(), strict=True)),
+        "linearised_error": dict(zip(names, np.expm1(a @ (t - m)).tolist(), strict=True)),
+        "fit_seed_means_at_truth": m.tolist(),
+        "truth_seed_means": mt.tolist(),
+        "figure_relative_spread": (vals.std(axis=1, ddof=1) / np.abs(m)).tolist(),
+        "jacobian_dlog": (jac / m[:, None]).tolist(),
+    }
 
 
 def main(argv=None) -> int:
@@ -103,7 +173,8 @@ def main(argv=None) -> int:
     for scene in fit.SCENES:  # truth and fit share one time step (dt depends on K_n)
         opts[scene]["lab"]["dt"] = fit.common_time_step(scene, opts[scene], [TRUTH, START])
     t0 = time.perf_counter()
-    targets = make_targets(TRUTH, truth_seeds, opts, args.min_uncertainty)
+    names, tvals = truth_values(TRUTH, truth_seeds, opts)
+    targets = targets_from_values(names, tvals, args.min_uncertainty)
     t_targets = time.perf_counter() - t0
     print("targets", json.dumps(targets))
     spec = {"targets": targets, "initial": START, "free": FREE, "seeds": fit_seeds} | opts
@@ -123,7 +194,17 @@ def main(argv=None) -> int:
         "targets_wall_time_s": t_targets,
         "build_wall_time_s": t_build,
     }
-    runs = {"adam": fit.adam(problem, learning_rate=args.learning_rate, steps=args.steps)}
+    t0 = time.perf_counter()
+    summary["predicted"] = predicted_recovery(problem, TRUTH, tvals)
+    summary["predicted"]["wall_time_s"] = time.perf_counter() - t0
+    print(
+        "predicted recovery",
+        json.dumps(
+            {k: summary["predicted"][k] for k in ("predicted_relative_std", "linearised_error")}
+        ),
+    )
+    runs = {"gauss_newton": fit.gauss_newton(problem)}
+    runs["adam"] = fit.adam(problem, learning_rate=args.learning_rate, steps=args.steps)
     if not args.no_baseline:
         runs["nelder_mead"] = fit.nelder_mead(problem, max_evaluations=args.max_evaluations)
     for name, res in runs.items():
@@ -134,6 +215,10 @@ def main(argv=None) -> int:
         }
         rep["recovered_within_5_percent"] = all(
             abs(v) < 0.05 for v in rep["relative_error"].values()
+        )
+        sd = summary["predicted"]["predicted_relative_std"]
+        rep["within_3_predicted_std"] = all(
+            abs(math.log1p(v)) <= 3.0 * sd[g] for g, v in rep["relative_error"].items()
         )
         summary[name] = rep
         print(name, rep["relative_error"], rep["simulations"], f"{rep['wall_time_s']:.0f} s")

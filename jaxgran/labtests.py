@@ -493,6 +493,7 @@ def biaxial_lab(
     damping: float = 0.0,
     contact_damping: float | None = None,
     dt: float | None = None,
+    require_peak: bool = False,
 ) -> Lab:
     """Biaxial lab (:mod:`jaxgran.scenes.bonded_biaxial` geometry, loading and material of
     ``cfg``) of the blocks of ``seeds``: with ``unconfined`` an unconfined compression of
@@ -507,7 +508,10 @@ def biaxial_lab(
     ``fit_range`` x its peak (fixed afterwards), or, with ``fit_strains``, over the records
     whose nominal platen strain (``strain_rate x time`` of shearing) lies in that range (the
     same window for every parameter set and seed, as a laboratory would use).
-    ``damping``, ``contact_damping`` and ``dt`` as for :func:`brazilian_lab`."""
+    ``damping``, ``contact_damping`` and ``dt`` as for :func:`brazilian_lab`.
+    With ``require_peak`` (for a ``ucs`` figure) the reference run's mean unconfined axial
+    stress must peak before the last record, or ``ucs`` would only be the stress at
+    ``max_strain`` (the lab raises ValueError then)."""
     p_values = tuple(float(p) for p in p_values)
     members = ([(s, 0.0) for s in seeds] if unconfined else []) + [
         (s, p) for p in p_values for s in seeds
@@ -582,6 +586,13 @@ def biaxial_lab(
     if n_u:
         s_ax = np.asarray(c["s_ax"][:, :n_u]).mean(axis=1)
         k = int(np.argmax(s_ax))
+        if require_peak and k == s_ax.size - 1:
+            raise ValueError(
+                "the unconfined stress still rises at max_strain = "
+                f"{max_strain or cfg.max_strain:g} ({s_ax[k] / 1e6:.4g} MPa at the last "
+                "record): 'ucs' would be the final stress, not a strength; raise max_strain "
+                "(scene option) or drop the ucs target"
+            )
         lo, hi = fit_range
         window[:] = 0.0
         window[: k + 1] = (s_ax[: k + 1] >= lo * s_ax[k]) & (s_ax[: k + 1] <= hi * s_ax[k])

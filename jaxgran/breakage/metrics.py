@@ -351,4 +351,3 @@ def quiet_speeds(
         "max": float(q.max()),
         "fraction_above": float(np.mean(q > limit)),
     }
-
