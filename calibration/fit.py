@@ -454,6 +454,7 @@ def gauss_newton(
     iterations: int = 12,
     tol: float = 1e-3,
     rtol: float = 0.02,
+    max_rejections: int = 2,
     max_step: float = 0.5,
     x0=None,
     log=print,
@@ -470,7 +471,8 @@ def gauss_newton(
     the linear model predicts a decrease below ``rtol`` of the loss (the loss of a small
     ensemble is rough at the percent level: contact and bond events that the surrogate does
     not smooth move it by a few % between nearby points, so smaller predicted gains are
-    noise). Returns what :func:`adam` returns; ``simulations`` counts the Jacobian
+    noise), or after ``max_rejections`` trials in a row that did not lower it (for the same
+    reason). Returns what :func:`adam` returns; ``simulations`` counts the Jacobian
     evaluations."""
     import jax
 
@@ -491,7 +493,7 @@ def gauss_newton(
         return val, r, jac
 
     val, r, jac = evaluate(x)
-    lam = 1e-2
+    lam, rejected = 1e-2, 0
     log(f"gauss-newton   0  loss {val:.4g}  x {np.round(np.exp(x), 5).tolist()}")
     while len(hist["loss"]) < iterations and val >= tol:
         jtj = jac.T @ jac
@@ -509,9 +511,12 @@ def gauss_newton(
             f"x {np.round(np.exp(trial), 5).tolist()}"
         )
         if v2 < val:
-            x, val, r, jac, lam = trial, v2, r2, j2, lam / 3.0
+            x, val, r, jac, lam, rejected = trial, v2, r2, j2, lam / 3.0, 0
         else:
-            lam *= 4.0
+            lam, rejected = lam * 4.0, rejected + 1
+            if rejected >= max_rejections:
+                log(f"gauss-newton: {rejected} trials in a row did not lower the loss, stop")
+                break
     return {
         "x": x,
         "loss": val,

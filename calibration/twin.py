@@ -224,7 +224,12 @@ def main(argv=None) -> int:
         print(name, rep["relative_error"], rep["simulations"], f"{rep['wall_time_s']:.0f} s")
         print(fit.format_table(rep["table"]))
     summary["adam"]["uncertainty"] = fit.uncertainty(problem, runs["adam"]["x"])
-    hist = {n: r["history"] for n, r in runs.items()}
+    label = {
+        "gauss_newton": "Gauss-Newton (forward-mode Jacobian)",
+        "adam": "Adam (reverse-mode gradient)",
+        "nelder_mead": "Nelder-Mead (no gradient)",
+    }
+    hist = {label[n]: r["history"] for n, r in runs.items()}
     summary["convergence_plot"] = str(plot_convergence(hist, args.out / "convergence.png"))
     (args.out / "twin.json").write_text(json.dumps(summary, indent=2, default=fit._json))
     return 0
