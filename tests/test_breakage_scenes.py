@@ -1,14 +1,20 @@
 """Breakage scenes: the breakage type of each method under N = 2, 3, 4 loads (paper 000
 Fig. 12) and the quick oedometric test of breakable pentagons (paper 000 §III)."""
 
+import contextlib
 import dataclasses
+import logging
 
+import jax
 import numpy as np
 import pytest
 
 from jaxgran.breakage import metrics
+from jaxgran.scenes import brazilian_dsm as bd
 from jaxgran.scenes import breakage_types as bt
+from jaxgran.scenes import deposit as dp
 from jaxgran.scenes import oedometer_cantor as oc
+from jaxgran.scenes import oedometer_voronoi as ov
 
 BT = dataclasses.replace(bt.Config(), **bt.QUICK)
 
@@ -43,9 +49,51 @@ def test_averaged_methods_cut_through_the_centroid_whatever_the_loading(types_ta
     assert md.count("\n") == 5 and "chipping" in md
 
 
+@contextlib.contextmanager
+def compiles_of(name: str):
+    """Collects the messages of every XLA compilation of ``jit(name)`` inside the block."""
+    seen = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            msg = record.getMessage()
+            if msg.startswith(f"Compiling jit({name})"):
+                seen.append(msg)
+
+    handler = Catch(level=logging.DEBUG)
+    logger = logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            yield seen
+    finally:
+        logger.removeHandler(handler)
+
+
+def test_scene_time_steps_are_strongly_typed():
+    """A weakly typed dt (``jnp.asarray`` of a Python float) differs in type from the dt that
+    breakage sets later, and the segment would recompile at the first breakage."""
+    built = [
+        oc.build(dataclasses.replace(oc.Config(), **oc.QUICK)),
+        ov.build(dataclasses.replace(ov.Config(), **ov.QUICK)),
+        dp.build(dataclasses.replace(dp.Config(), **dp.QUICK)),
+        bd.build(dataclasses.replace(bd.Config(), **bd.QUICK)),
+        bt.build(BT, "N2", 1.0),
+    ]
+    for parts in built:
+        params = parts[1]
+        assert not params.dt.weak_type
+        assert params.dt.dtype == params.normal_stiffness.dtype
+
+
 def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
     cfg = dataclasses.replace(oc.Config(), **oc.QUICK, method="split-cell")
-    settle, load, brk, info = oc.simulate_test(cfg)
+    with compiles_of("run_segment") as compiled:
+        settle, load, brk, info = oc.simulate_test(cfg)
+    # breakage and the adaptive time step never recompile the segment; a capacity growth
+    # (logged in the event) may, once per growth
+    growths = sum("capacity_growth" in e for e in brk.events)
+    assert len(compiled) <= 1 + growths
     s = oc.summarize(settle, load, brk, info, cfg)
     assert s["finite"] and not s["escaped"]
     assert s["n_events"] >= 1

@@ -136,7 +136,9 @@ def build(cfg: Config, rotation: float = 0.0):
         thickness=cfg.thickness,
         poisson_ratio=cfg.poisson_ratio,
     )
-    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, cfg.dt_safety)))
+    params = replace(
+        params, dt=jnp.asarray(stable_time_step(parts, params, cfg.dt_safety), params.dt.dtype)
+    )
     check_time_step(parts, params)
     # the platens touch the outline where it is highest and lowest
     top = float(np.max(core[:, 1])) + r

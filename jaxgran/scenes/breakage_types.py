@@ -107,7 +107,7 @@ def build(cfg: Config, configuration: str, load_factor: float):
         poisson_ratio=cfg.poisson_ratio,
         skin=2.0e-4,
     )
-    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.15)))
+    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.15), params.dt.dtype))
     top = max(m for _, m, _ in loads)
     walls, pts, frc = [], [], []
     for a, m, direction in loads:

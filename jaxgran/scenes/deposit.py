@@ -95,7 +95,7 @@ def build(cfg: Config):
     m_typ = float(np.median(np.asarray(parts.mass)))
     params = contact_params(cfg, m_typ)
     dt = cfg.dt or min(cfg.dt_max, stable_time_step(parts, params, cfg.dt_safety))
-    params = replace(params, dt=jnp.asarray(dt))
+    params = replace(params, dt=jnp.asarray(dt, params.dt.dtype))
     check_time_step(parts, params)
     top = float(np.max(np.asarray(parts.pos)[:, 1])) + 0.05
     walls = make_walls(box_walls((0.0, 0.0), (cfg.box_width, top), top=False))

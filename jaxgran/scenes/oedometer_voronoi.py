@@ -17,6 +17,7 @@ The full test is ~1e6 steps of ~600 grains: a GPU job; ``--quick`` is a 30 cm wi
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -77,6 +78,7 @@ class Config:
     erosion: str = "local"  # fragments' erosion: local, uniform, none
     small_pieces: str = "merge"  # pieces below min_fragment_fraction: merge or fines
     conserve_mass: bool = False  # density compensation of the erosion
+    capacity_factor: float = 2.0  # particle slots at the start / n_cells (growth recompiles)
     seed: int = 0
 
 
@@ -116,10 +118,20 @@ def cells(cfg: Config) -> list[np.ndarray]:
 
 def build(cfg: Config):
     """Initial state (cells in the air, bar parked above), parameters and grid."""
-    parts = particles_from_polygons(cells(cfg), cfg.sphero_radius, cfg.areal_density)
-    m_mean = float(np.asarray(parts.mass).mean())
+    if cfg.capacity_factor < 1.0:
+        raise ValueError(f"capacity_factor must be >= 1, got {cfg.capacity_factor}")
+    cores = cells(cfg)
+    parts = particles_from_polygons(
+        cores,
+        cfg.sphero_radius,
+        cfg.areal_density,
+        capacity=max(len(cores), math.ceil(cfg.capacity_factor * len(cores))),
+    )
+    m_mean = float(np.asarray(parts.mass)[np.asarray(parts.active)].mean())
     params = contact_params(cfg, m_mean, poisson_ratio=cfg.poisson_ratio)
-    params = replace(params, dt=jnp.asarray(oc.adaptive_dt(parts, params, cfg.dt_safety)))
+    params = replace(
+        params, dt=jnp.asarray(oc.adaptive_dt(parts, params, cfg.dt_safety), params.dt.dtype)
+    )
     check_time_step(parts, params)
     pos = np.asarray(parts.pos)
     rmax = float(np.asarray(parts.bound_radius).max())
