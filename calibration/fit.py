@@ -530,10 +530,10 @@ def gauss_newton(
 # ------------------------------------------------------------------------------ report
 
 
-def uncertainty(problem: Problem, x) -> dict:
-    """Covariance of the free log groups from the Jacobian of the ensemble means and the
-    ensemble spread (module docstring); standard deviations of the log groups, i.e.
-    relative uncertainties of the groups."""
+def mean_jacobian(problem: Problem, x) -> tuple[np.ndarray, np.ndarray]:
+    """``d m / d x`` ``[n_targets, n_free]`` of the ensemble means with respect to the free
+    log groups (forward mode, one run carrying one tangent per group) and the figures of
+    every realisation ``[n_targets, K]`` at ``x``."""
     import jax
 
     def means(xx):
@@ -541,7 +541,14 @@ def uncertainty(problem: Problem, x) -> dict:
         return vals.mean(axis=1), vals
 
     jac, vals = jax.jit(jax.jacfwd(means, has_aux=True))(jax.numpy.asarray(x))
-    jac, vals = np.asarray(jac), np.asarray(vals)
+    return np.asarray(jac), np.asarray(vals)
+
+
+def uncertainty(problem: Problem, x) -> dict:
+    """Covariance of the free log groups from the Jacobian of the ensemble means and the
+    ensemble spread (module docstring); standard deviations of the log groups, i.e.
+    relative uncertainties of the groups."""
+    jac, vals = mean_jacobian(problem, x)
     k = vals.shape[1]
     spread = vals.std(axis=1, ddof=1) if k > 1 else np.zeros(vals.shape[0])
     u = np.array([t.uncertainty for t in problem.targets])

@@ -108,16 +108,13 @@ def predicted_recovery(problem: fit.Problem, truth: dict, truth_vals) -> dict:
     the linearised error for these two seed sets (``linearised_error``, relative), the
     relative spread of each figure over the fit seeds and ``d log figure / d log group``.
     The 5 % criterion can only be met reliably when the predicted std is below ~2.5 %."""
-    import jax
-    import jax.numpy as jnp
-
-    def means(xx):
-        vals, _ = fit.simulate_all(problem, xx)
-        return vals.mean(axis=1), vals
-
-    z = fit.groups_from_values(truth)[problem.free]
-    jac, vals = jax.jit(jax.jacfwd(means, has_aux=True))(jnp.asarray(z))
-    jac, vals = np.asarray(jac), np.asarray(vals)
+    if len(problem.seeds) < 2 or np.asarray(truth_vals).shape[1] < 2:
+        raise ValueError("predicted_recovery needs at least 2 realisations in each ensemble")
+    z = fit.groups_from_values(truth)
+    fixed = [i for i in range(z.size) if i not in problem.free]
+    if not np.allclose(np.asarray(problem.z0)[fixed], z[fixed], rtol=0.0, atol=1e-12):
+        raise ValueError("the problem's fixed groups must have the truth's values")
+    jac, vals = fit.mean_jacobian(problem, z[problem.free])
     truth_vals = np.asarray(truth_vals)
     m, mt = vals.mean(axis=1), truth_vals.mean(axis=1)
     t = np.array([tt.value for tt in problem.targets])
@@ -127,7 +124,13 @@ def predicted_recovery(problem: fit.Problem, truth: dict, truth_vals) -> dict:
         + truth_vals.var(axis=1, ddof=1) / (truth_vals.shape[1])
     )
     w = 1.0 / u**2
-    a = np.linalg.solve(jac.T @ (w[:, None] * jac), jac.T * w)
+    try:
+        a = np.linalg.solve(jac.T @ (w[:, None] * jac), jac.T * w)
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            f"the {len(problem.targets)} figures do not determine the {problem.n_free} free "
+            "groups (singular J^T W J): add figures or free fewer groups"
+        ) from None
     cov = a @ np.diag(var) @ a.T
     names = [fit.GROUPS[i] for i in problem.free]
     return {
