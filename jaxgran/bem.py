@@ -45,6 +45,15 @@ acts at the contact point itself, on the true outline. Before the solve the forc
 are equilibrated by the minimum-norm correction (resultant removed equally, moment by a
 tangential rotation field about the mean contact point), skipped with fewer than two contacts.
 
+Screening (``psi_bound``, ``psi_bound_flat``, ``screen``): psi is a norm of the stress, so by
+the triangle inequality over contacts the largest psi of a particle is at most a sum over its
+contacts of |F| times per-element numbers tabulated at build time for a few angular groups of
+sample points (the operator block's norm; for the Flamant part the distances from the
+group to the element's chord). That bound reads a few numbers per contact instead of the
+[2, M, 3] blocks; particles whose bound is below the threshold cannot reach it anywhere, and
+only the others need the field. The bound exceeds the field by a factor of about 2 (median
+1.8 on a settled pile, ``benchmarks/SCREENING_RESULTS.md``).
+
 psi (paper 000, Eq. 2) is the strain-energy equivalent stress psi = sqrt(2 E W); uniaxially
 psi = |sigma|. In-plane stresses of a traction-loaded simply connected body do not depend on E
 or nu (Michell), so no Young's modulus is needed anywhere; nu enters the kernels only through
@@ -76,6 +85,9 @@ _TWO_PI = 2.0 * math.pi
 _MARGIN = 1.5
 # Grid search for sample points: candidate offsets -G..G with G = ceil(_GRID_REACH sqrt(M)).
 _GRID_REACH = 2.0
+# Angular groups of sample points in the screening bound (psi_bound): more groups, a tighter
+# bound and a larger table [P, N, G].
+_SCREEN_GROUPS = 8
 
 
 def _safe_norm(v: jnp.ndarray) -> jnp.ndarray:
@@ -565,9 +577,19 @@ def _assign_contacts(contact_points, nodes, centre, node_angles):
     """Split each contact between the two elements whose midpoints bracket it along the
     element polygon (a hat function along the boundary).
 
-    The element is the one whose angular sector (seen from ``centre``) holds the contact: C x N
-    comparisons, no distances. Returns (first element ``lo`` [C] in 0..N-1, weight of element
-    ``(lo + 1) mod N`` [C]).
+    Returns (first element ``lo`` [C] in 0..N-1, weight of element ``(lo + 1) mod N`` [C]);
+    see ``_contact_elements``.
+    """
+    _, lo, w_hi = _contact_elements(contact_points, nodes, centre, node_angles)
+    return lo, w_hi
+
+
+def _contact_elements(contact_points, nodes, centre, node_angles):
+    """The element holding each contact and its hat split over two elements.
+
+    The element ``e`` is the one whose angular sector (seen from ``centre``) holds the contact:
+    C x N comparisons, no distances. Returns (``e`` [C], first element of the split ``lo`` [C]
+    in 0..N-1, weight ``w`` in [0, 1] of element ``(lo + 1) mod N`` [C]).
     """
     N = nodes.shape[0]
     d = contact_points - centre
@@ -587,7 +609,7 @@ def _assign_contacts(contact_points, nodes, centre, node_angles):
     w_prev = _safe_div(0.5 * le - u, 0.5 * (le + l_prev))  # weight of e - 1 when behind
     lo = jnp.where(ahead, e, prev)
     w_hi = jnp.where(ahead, w_next, 1.0 - w_prev)
-    return lo, w_hi
+    return e, lo, w_hi
 
 
 def _equilibrate(x, f, mask):
@@ -605,9 +627,12 @@ def _equilibrate(x, f, mask):
 
 def _contact_stress(
     k_f, nodes, centre, node_angles, points, contact_points, contact_forces, contact_mask,
-    load_model,
+    load_model, pid=None,
 ):  # fmt: skip
     """Stress ``[M, 3]`` (Pa x thickness) of one particle from its contact forces (N).
+
+    ``k_f`` is the particle's ``[N, 2, M, 3]`` operator, or with ``pid`` the ``[P, N, 2, M, 3]``
+    operator of all particles, of which only particle ``pid``'s loaded blocks are read.
 
     Each contact reads the two ``[2, M, 3]`` blocks of ``k_f`` around it, blended by the hat
     weights into one (XLA fuses the two gathers and the blend).
@@ -619,7 +644,10 @@ def _contact_stress(
     forces = jnp.where(contact_mask[:, None], contact_forces, 0.0)
     forces = _equilibrate(contact_points, forces, contact_mask)
     w = w.astype(k_f.dtype)[:, None, None, None]
-    col = (1.0 - w) * k_f[lo] + w * k_f[(lo + 1) % k_f.shape[0]]
+    if pid is None:
+        col = (1.0 - w) * k_f[lo] + w * k_f[(lo + 1) % k_f.shape[0]]
+    else:  # k_f holds every particle: read only the loaded blocks of particle pid
+        col = (1.0 - w) * k_f[pid, lo] + w * k_f[pid, (lo + 1) % k_f.shape[1]]
     sigma = jnp.einsum("ckmj,ck->mj", col, forces.astype(k_f.dtype))
     if load_model == "flamant":
         sigma = sigma + _flamant_field(points, contact_points, forces)
@@ -957,6 +985,8 @@ class BemOperators(eqx.Module):
         centres: mean of the nodes ``[P, 2]`` (m), inside each outline.
         node_angles: polar angles of the nodes about ``centres`` ``[P, N]`` (rad), increasing
             from node 0; a contact's element is found from its angle (C x N comparisons).
+        screen_table: ``[P, N, G, 4]``: per element and group of sample points (G angular
+            sectors) the numbers of the screening bound ``psi_bound`` (``_screen_tables``).
         poisson_ratio: nu used in the kernels (-).
         plane: ``"stress"`` or ``"strain"`` (static).
         load_model: ``"flamant"`` or ``"element"`` (static).
@@ -974,12 +1004,57 @@ class BemOperators(eqx.Module):
     valid: jax.Array
     centres: jax.Array
     node_angles: jax.Array
+    screen_table: jax.Array
     poisson_ratio: jax.Array
     plane: str = eqx.field(static=True)
     load_model: str = eqx.field(static=True)
 
 
-def _build_one(verts, n_verts, radius, nu_kernel, *, n_elements, n_points, load_model):
+def _psi_form(poisson_ratio, plane: str, dtype) -> jnp.ndarray:
+    """``Q [3, 3]`` with psi^2 = s^T Q s for s = (sigma_xx, sigma_yy, sigma_xy), by polarising
+    ``equivalent_stress`` (Q is positive definite for -1 < nu < 1/2, so psi is a norm)."""
+    eye = jnp.eye(3, dtype=dtype)
+    diag = equivalent_stress(eye, poisson_ratio, plane) ** 2
+    pair = equivalent_stress(eye[:, None, :] + eye[None, :, :], poisson_ratio, plane) ** 2
+    return 0.5 * (pair - diag[:, None] - diag[None, :])
+
+
+def _screen_tables(k_f, nodes, points, mask, centre, q, n_groups: int):
+    """Per element e and group g of sample points, the numbers ``psi_bound`` needs.
+
+    Groups are angular sectors of the sample points about ``centre``. For a point p of the
+    group, d = its distance to the element's chord (segment) and h = its distance to the
+    chord's line on the inner side. Returns ``[N, G, 4]``: (max over the group of the
+    operator norm, in the psi norm, of the 3 x 2 block ``k_f[e, :, p, :]`` (1/m);
+    max h / d^2 (1/m); min d (m); min h (m)); an empty group gives (0, 0, +inf, +inf).
+    """
+    gram = jnp.einsum("ekmi,ij,elmj->emkl", k_f, q, k_f)  # [N, M, 2, 2]
+    a, b, c = gram[..., 0, 0], gram[..., 0, 1], gram[..., 1, 1]
+    lam = 0.5 * (a + c) + jnp.sqrt(0.25 * (a - c) ** 2 + b * b)
+    op = jnp.sqrt(jnp.maximum(lam, 0.0))  # [N, M]
+    d = points - centre
+    ang = jnp.arctan2(d[:, 1], d[:, 0])
+    grp = jnp.clip(jnp.floor((ang + math.pi) / _TWO_PI * n_groups), 0, n_groups - 1)
+    member = (grp[:, None] == jnp.arange(n_groups)[None, :]) & mask[:, None]  # [M, G]
+    a0 = nodes
+    ab = jnp.roll(nodes, -1, axis=0) - a0
+    rel = points[None] - a0[:, None]  # [N, M, 2]
+    t = _safe_div(jnp.sum(rel * ab[:, None], -1), jnp.sum(ab * ab, -1)[:, None])
+    dist = _safe_norm(rel - jnp.clip(t, 0.0, 1.0)[..., None] * ab[:, None])  # [N, M]
+    inward = _perp(ab) / jnp.maximum(_safe_norm(ab), 1e-300)[:, None]  # CCW: left is inside
+    h = jnp.sum(rel * inward[:, None], -1)
+    ratio = h / jnp.where(dist > 0, dist, 1.0) ** 2
+
+    def gmax(x):
+        return jnp.max(jnp.where(member[None], x[:, :, None], 0.0), axis=1)
+
+    def gmin(x):
+        return jnp.min(jnp.where(member[None], x[:, :, None], jnp.inf), axis=1)
+
+    return jnp.stack([gmax(op), gmax(ratio), gmin(dist), gmin(h)], axis=-1)
+
+
+def _build_one(verts, n_verts, radius, nu_kernel, q, *, n_elements, n_points, load_model):
     dtype = verts.dtype
     _, edge_len, _, _ = _core_edges(verts, n_verts)
     scale = jnp.max(jnp.abs(verts - verts[0])) + radius
@@ -995,15 +1070,18 @@ def _build_one(verts, n_verts, radius, nu_kernel, *, n_elements, n_points, load_
     k_f = _force_operator(nodes, points, nu_kernel, load_model)
     k_f = jnp.where(valid & mask[None, None, :, None], k_f, 0.0)
     centre, angles = _node_angles(nodes)
-    return nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles
+    table = _screen_tables(k_f, nodes, points, mask, centre, q, _SCREEN_GROUPS)
+    return nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles, table
 
 
 @jax.jit(static_argnames=("n_elements", "n_points", "load_model", "batch_size"))
-def _build_jit(verts, n_verts, radius, nu_kernel, *, n_elements, n_points, load_model, batch_size):
+def _build_jit(
+    verts, n_verts, radius, nu_kernel, q, *, n_elements, n_points, load_model, batch_size
+):  # fmt: skip
     def one(args):
         v, n, r = args
         return _build_one(
-            v, n, r, nu_kernel, n_elements=n_elements, n_points=n_points, load_model=load_model
+            v, n, r, nu_kernel, q, n_elements=n_elements, n_points=n_points, load_model=load_model
         )
 
     return lax.map(one, (verts, n_verts, radius), batch_size=batch_size)
@@ -1071,6 +1149,7 @@ def build_operators(
         jnp.concatenate([n_verts, jnp.zeros(pad, jnp.int32)]),
         jnp.concatenate([radius, jnp.zeros(pad, verts.dtype)]),
         jnp.asarray(_kernel_poisson(nu, plane), verts.dtype),
+        _psi_form(nu, plane, verts.dtype),
         n_elements=int(n_elements),
         n_points=int(n_points),
         load_model=load_model,
@@ -1078,7 +1157,7 @@ def build_operators(
     )
     if pad:
         out = [x[:P] for x in out]
-    nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles = out
+    nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles, table = out
     return BemOperators(
         nodes=nodes,
         midpoints=mid,
@@ -1092,6 +1171,7 @@ def build_operators(
         valid=valid,
         centres=centre,
         node_angles=angles,
+        screen_table=table,
         poisson_ratio=jnp.asarray(nu, verts.dtype),
         plane=plane,
         load_model=load_model,
@@ -1199,3 +1279,280 @@ def psi_batched(
     sigma = jnp.where(keep[..., None], stress / thickness[:, None, None], 0.0)
     psi = equivalent_stress(sigma, nu, plane)
     return sigma, jnp.where(keep, psi, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# screening: a rigorous upper bound of psi, then the exact field only where it can matter
+# ---------------------------------------------------------------------------------------------
+
+
+def _equilibrate_flat(x, f, mask, particle, n_particles):
+    """``_equilibrate`` for a flat contact list: forces ``[S, 2]`` at ``x [S, 2]`` of
+    particles ``particle [S]``, each particle corrected with its own contacts."""
+    m = mask.astype(f.dtype)[:, None]
+    f = m * f
+
+    def seg(v):
+        return jax.ops.segment_sum(v, particle, num_segments=n_particles)
+
+    count = seg(mask.astype(jnp.int32))
+    nn = jnp.maximum(count, 1).astype(f.dtype)[:, None]
+    f1 = f - m * (seg(m * f) / nn)[particle]
+    dx = m * (x - (seg(m * x) / nn)[particle])
+    omega = -_safe_div(seg(_cross2(dx, f1)), seg(jnp.sum(dx * dx, -1)))
+    f2 = f1 + omega[particle][:, None] * _perp(dx)
+    return jnp.where((count >= 2)[particle][:, None], f2, f)
+
+
+def _bound_terms(table, nodes, centre, node_angles, cp, f, c_uniaxial, flamant):
+    """Per contact and point group, the bound of its psi (Pa x thickness), ``[G]``.
+
+    psi is a norm of the stress (``_psi_form``), and the stress is a sum over contacts of
+    (hat-blended operator block) . force plus, for ``flamant``, the Flamant field of the
+    force, whose psi at a point p is (2 / pi) |F . e| / rho x psi(unit uniaxial stress), with
+    rho e = p - x_c. The triangle inequality over contacts and the per-group numbers of
+    ``_screen_tables`` bound the whole field. For the Flamant part, with F = F_n n + F_t t on
+    the contact's element chord (n inward), eta = distance of x_c from the chord, d and h
+    the distances of p from the chord and from its line:
+    |n . e| / rho <= (h + eta) / (d - eta)^2 and |t . e| / rho <= min(1 / (d - eta),
+    1 / (2 (h - eta))). A contact with eta not below d and h (deep inside) gives +inf.
+    ``f`` is the (equilibrated) force ``[2]``; the other arguments are one particle's.
+    """
+    n_el = nodes.shape[0]
+    e, lo, w = _contact_elements(cp[None], nodes, centre, node_angles)
+    e, lo, w = e[0], lo[0], w[0]
+    fm = _safe_norm(f)
+    op = table[..., 0]
+    per = fm * ((1.0 - w) * op[lo] + w * op[(lo + 1) % n_el])  # [G]
+    if flamant:
+        a = nodes[e]
+        ab = nodes[(e + 1) % n_el] - a
+        le = jnp.maximum(_safe_norm(ab), 1e-300)
+        tang = ab / le
+        t = jnp.clip(jnp.sum((cp - a) * tang) / le, 0.0, 1.0)
+        eta = _safe_norm(cp - a - t * ab)
+        f_n = jnp.abs(_cross2(tang, f))  # F . n with n = perp(t)
+        f_t = jnp.abs(jnp.sum(f * tang))
+        ratio, d_min, h_min = table[e, :, 1], table[e, :, 2], table[e, :, 3]  # [G]
+        ok = (d_min > eta) & (h_min > eta)
+        dd = jnp.where(ok, d_min - eta, 1.0)
+        hh = jnp.where(ok, h_min - eta, 1.0)
+        grow = (1.0 + jnp.where(ok, eta / jnp.where(ok, h_min, 1.0), 0.0)) * (d_min / dd) ** 2
+        grow = jnp.where(jnp.isinf(d_min), 1.0, grow)
+        tangential = jnp.minimum(1.0 / dd, 0.5 / hh)
+        near = (2.0 / math.pi) * c_uniaxial * (f_n * ratio * grow + f_t * tangential)
+        per = per + jnp.where(ok, near, jnp.inf)
+    return jnp.where(fm > 0, per, 0.0)
+
+
+def psi_bound_flat(
+    ops: BemOperators,
+    particle: jax.Array,
+    contact_points: jax.Array,
+    contact_forces: jax.Array,
+    contact_mask: jax.Array,
+    *,
+    thickness: float | jax.Array = 1.0,
+) -> jax.Array:
+    """``psi_bound`` for a flat contact list ``[S]`` (cost grows with S, not with P x the
+    longest contact list): ``particle [S]`` (int) the slot each contact belongs to,
+    ``contact_points``, ``contact_forces`` ``[S, 2]`` in that particle's body frame,
+    ``contact_mask [S]``. Returns ``[P]`` (Pa)."""
+    P = ops.lengths.shape[0]
+    dtype = ops.screen_table.dtype
+    particle = jnp.asarray(particle, jnp.int32)
+    cp = contact_points.astype(dtype)
+    f = _equilibrate_flat(cp, contact_forces.astype(dtype), contact_mask, particle, P)
+    c_uni = equivalent_stress(jnp.array([1.0, 0.0, 0.0], dtype), ops.poisson_ratio, ops.plane)
+    flamant = ops.load_model == "flamant"
+    terms = jax.vmap(
+        lambda i, x, g: _bound_terms(
+            ops.screen_table[i],
+            ops.nodes[i],
+            ops.centres[i],
+            ops.node_angles[i],
+            x,
+            g,
+            c_uni,
+            flamant,
+        )  # fmt: skip
+    )(particle, cp, f)
+    terms = jnp.where(contact_mask[:, None], terms, 0.0)
+    b = jnp.max(jax.ops.segment_sum(terms, particle, num_segments=P), axis=1)
+    thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
+    b = jnp.where(ops.valid, b / thickness, 0.0)
+    return b * (1.0 + 1000.0 * jnp.finfo(dtype).eps)
+
+
+def psi_bound(
+    ops: BemOperators,
+    contact_points: jax.Array,
+    contact_forces: jax.Array,
+    contact_mask: jax.Array,
+    *,
+    thickness: float | jax.Array = 1.0,
+) -> jax.Array:
+    """Upper bound of the largest psi over the sample points of every particle (Pa), jit-able.
+
+    Guaranteed (up to rounding, covered by a relative margin of 1000 machine epsilons):
+    ``psi_bound(...) >= psi_batched(...)[1].max(axis=1)`` for the operators' nu and plane. It
+    reads a few numbers per contact (``ops.screen_table``) instead of the ``[2, M, 3]``
+    operator blocks, so it costs a small fraction of ``psi_batched``. It is +inf for a
+    contact that is not on the far side of its element's chord from the points (a contact
+    point pushed deep into the particle), so such a particle is never screened out.
+    Arguments as in ``psi_batched``; masked slots cost as much as real contacts (see
+    ``psi_bound_flat`` for a flat list).
+
+    Returns:
+        ``[P]`` (Pa); 0 for particles without contacts or without a valid outline.
+    """
+    P, C = contact_mask.shape
+    particle = jnp.repeat(jnp.arange(P, dtype=jnp.int32), C)
+    return psi_bound_flat(
+        ops,
+        particle,
+        contact_points.reshape(P * C, 2),
+        contact_forces.reshape(P * C, 2),
+        contact_mask.reshape(P * C),
+        thickness=thickness,
+    )
+
+
+class Screening(NamedTuple):
+    """Result of ``screen`` (P particles, K candidate slots, M sample points).
+
+    Attributes:
+        bound: ``[P]`` upper bound of each particle's largest psi (Pa), ``psi_bound``.
+        candidates: ``[K]`` particle indices, largest ``bound / threshold`` first.
+        is_candidate: ``[K]`` bound >= threshold (the others fill the slots).
+        sigma: ``[K, M, 3]`` stress of the candidates (Pa), as ``psi_batched``.
+        psi: ``[K, M]`` psi of the candidates (Pa), as ``psi_batched``.
+        reaches: ``[K]`` candidate whose largest psi reaches the threshold.
+        n_candidates: number of particles with bound >= threshold (scalar int).
+        complete: ``n_candidates <= K``: every particle not in ``candidates`` has psi below
+            the threshold at every sample point.
+    """
+
+    bound: jax.Array
+    candidates: jax.Array
+    is_candidate: jax.Array
+    sigma: jax.Array
+    psi: jax.Array
+    reaches: jax.Array
+    n_candidates: jax.Array
+    complete: jax.Array
+
+
+def _flat_contacts(contact_points, contact_forces, contact_mask):
+    """The real contacts of padded lists as a flat list (host), padded to a power of two
+    (at least 8) so that the compiled bound is reused: (particle, points, forces, mask)."""
+    mask = np.asarray(contact_mask, bool)
+    rows, cols = np.nonzero(mask)
+    size = max(8, 1 << max(len(rows) - 1, 0).bit_length())
+    pad = size - len(rows)
+    cp, cf = np.asarray(contact_points), np.asarray(contact_forces)
+    return (
+        np.concatenate([rows, np.zeros(pad, int)]).astype(np.int32),
+        np.concatenate([cp[rows, cols], np.zeros((pad, 2), cp.dtype)]),
+        np.concatenate([cf[rows, cols], np.zeros((pad, 2), cf.dtype)]),
+        np.arange(size) < len(rows),
+    )
+
+
+def _screen_core(
+    ops, contact_points, contact_forces, contact_mask, threshold, thickness, k, flat=None
+):  # fmt: skip
+    """The two levels of ``screen`` for K = ``k`` candidate slots (jit-able); ``flat``: the
+    same contacts as ``_flat_contacts`` (the bound then costs per real contact)."""
+    P = ops.lengths.shape[0]
+    dtype = ops.screen_table.dtype
+    thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
+    threshold = jnp.broadcast_to(jnp.asarray(threshold, dtype), (P,))
+    if flat is None:
+        bound = psi_bound(ops, contact_points, contact_forces, contact_mask, thickness=thickness)
+    else:
+        bound = psi_bound_flat(ops, *flat, thickness=thickness)
+    ratio = bound / threshold
+    top, idx = lax.top_k(ratio, k)
+    stress = jax.vmap(
+        lambda i, cp, cf, cm: _contact_stress(
+            ops.stress_per_force,
+            ops.nodes[i],
+            ops.centres[i],
+            ops.node_angles[i],
+            ops.points[i],
+            cp,
+            cf,
+            cm,
+            ops.load_model,
+            pid=i,
+        )
+    )(idx, contact_points[idx].astype(dtype), contact_forces[idx].astype(dtype), contact_mask[idx])
+    keep = ops.point_mask[idx] & ops.valid[idx][:, None]
+    sigma = jnp.where(keep[..., None], stress / thickness[idx][:, None, None], 0.0)
+    psi = jnp.where(keep, equivalent_stress(sigma, ops.poisson_ratio, ops.plane), 0.0)
+    is_cand = top >= 1.0
+    n_cand = jnp.sum(ratio >= 1.0)
+    return Screening(
+        bound=bound,
+        candidates=idx,
+        is_candidate=is_cand,
+        sigma=sigma,
+        psi=psi,
+        reaches=is_cand & (jnp.max(psi, axis=1) >= threshold[idx]),
+        n_candidates=n_cand,
+        complete=n_cand <= k,
+    )
+
+
+_screen_jit = eqx.filter_jit(_screen_core)
+
+
+def screen(
+    ops: BemOperators,
+    contact_points: ArrayLike,
+    contact_forces: ArrayLike,
+    contact_mask: ArrayLike,
+    threshold: float | ArrayLike,
+    *,
+    thickness: float | ArrayLike = 1.0,
+    max_candidates: int = 64,
+) -> Screening:
+    """Which particles can reach psi >= ``threshold``, with their exact field (host call).
+
+    Two levels: ``psi_bound_flat`` for every particle (a few numbers read per real contact),
+    then ``psi_batched``'s field only for the particles whose bound reaches the threshold. The
+    answer is the same as thresholding ``psi_batched`` of all particles: particles left out
+    are proven below the threshold. If more than ``max_candidates`` particles pass the bound,
+    the call is repeated with K = the next power of two at or above their count (the K used
+    is ``Screening.candidates.shape[0]``; each K compiles once), so nothing is cut.
+
+    Args:
+        ops, contact_points, contact_forces, contact_mask, thickness: as in ``psi_batched``.
+        threshold: psi threshold (Pa), scalar or ``[P]``, > 0.
+        max_candidates: K, candidate slots of the first attempt (static: one compilation
+            per K).
+
+    Returns:
+        ``Screening``.
+    """
+    thr = np.asarray(threshold, dtype=float)
+    if not np.all(np.isfinite(thr)) or np.any(thr <= 0):
+        raise ValueError("threshold must be finite and > 0")
+    P = ops.lengths.shape[0]
+    k = max(1, min(int(max_candidates), P))
+    dtype = ops.screen_table.dtype
+    args = (
+        ops,
+        jnp.asarray(contact_points, dtype),
+        jnp.asarray(contact_forces, dtype),
+        jnp.asarray(contact_mask, bool),
+        jnp.asarray(thr, dtype),
+        jnp.asarray(thickness, dtype),
+    )
+    flat = tuple(jnp.asarray(x) for x in _flat_contacts(*args[1:4]))
+    while True:
+        res = _screen_jit(*args, k, flat)
+        if bool(res.complete):
+            return res
+        k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())

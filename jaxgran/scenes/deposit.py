@@ -105,7 +105,11 @@ def build(cfg: Config):
     return state, params, grid
 
 
-def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
+def pour(cfg: Config, *, progress: bool = True, frame_every: int = 5):
+    """Build the deposit and run it until it settles (kinetic energy below
+    ``ke_stop_ratio`` x its peak, after ``min_time``) or ``max_time``.
+
+    Returns ``(result, params, peak kinetic energy (J))``."""
     state, params, grid = build(cfg)
     dt = float(params.dt)
     n_steps = int(np.ceil(cfg.max_time / dt))
@@ -124,12 +128,17 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         n_steps=n_steps,
         record_every=cfg.record_every,
         records_per_segment=cfg.records_per_segment,
-        frame_every=5,
+        frame_every=frame_every,
         callback=settled,
         progress=progress,
         desc="deposit",
     )
-    summary = summarize(result, params, cfg, peak[0])
+    return result, params, peak[0]
+
+
+def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
+    result, params, peak = pour(cfg, progress=progress)
+    summary = summarize(result, params, cfg, peak)
     return write_outputs(out_dir, "deposit", cfg, result, params, summary, vtk=vtk)
 
 

@@ -1,0 +1,325 @@
+"""Breakage screening of a settled pile against one contact step of the same pile.
+
+The pile is the ``deposit`` scene (Voronoi spheropolygons poured into a box under gravity)
+with ``--cells`` cells, run until it settles; its contact forces are real (force chains, a
+wide force distribution), not synthetic loads. For that state:
+
+* the per-particle contact lists (``breakage.dsm.contact_table``) and the BEM operators of
+  every particle (N = 64 elements, about 100 sample points, plane stress, nu = 0.3);
+* the largest psi of every particle (``bem.psi_batched``) and the thresholds at which the
+  first particle (or the top 1 %, 10 %) reaches it, i.e. eps just at the onset of breakage;
+* for each threshold, how many particles pass the bound (``bem.psi_bound``) and so need the
+  full field, and that the two-level screening (``bem.screen``) finds exactly the particles
+  that the full field finds;
+* times, float32 and float64, compilation excluded, median of ``--repeats``: one contact step
+  (``simulate.run_segment``), the full field of every particle, the bound alone and the
+  two-level screening; each both as one jitted call and as the marginal cost of one more
+  evaluation inside a jitted loop (what it adds to a step it is fused into: no dispatch).
+
+    python benchmarks/bench_screening.py                  # ~10 min on 2 cores
+    python benchmarks/bench_screening.py --cells 300      # smaller pile
+
+Writes ``benchmarks/SCREENING_RESULTS.md`` and ``benchmarks/SCREENING_RESULTS.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from machine import cpu_name  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+LOOP = 20  # evaluations per jitted loop for the marginal cost
+
+
+def median_ms(fn, repeats):
+    import jax
+
+    jax.block_until_ready(fn())
+    runs = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        runs.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(runs)
+
+
+def settled_pile(cells: int, width: float, cache: str | None = None):
+    """The deposit scene run until it settles: (state, params, grid, config), float64.
+
+    With ``cache``, the settled pile is pickled there and reused by later runs with the same
+    arguments (timing the screening again needs no new pour)."""
+    import pickle
+
+    import jax
+    import numpy as np
+
+    from jaxgran.scenes import deposit
+
+    cfg = deposit.Config(n_cells=cells, box_width=width)
+    if cache and Path(cache).exists():
+        with open(cache, "rb") as fh:
+            key, pile = pickle.load(fh)
+        if key == (cells, width):
+            return (*pile, cfg)
+    state, params, grid = _pour(cfg)
+    if cache:
+        pile = jax.tree_util.tree_map(np.asarray, (state, params, grid))
+        with open(cache, "wb") as fh:
+            pickle.dump(((cells, width), pile), fh)
+    return state, params, grid, cfg
+
+
+def _pour(cfg):
+    from jaxgran.scenes import deposit
+
+    res, _, _ = deposit.pour(cfg, frame_every=10**9)
+    return res.state, res.params, res.grid
+
+
+def cast(tree, dtype):
+    import jax
+    import jax.numpy as jnp
+
+    return jax.tree_util.tree_map(
+        lambda x: (
+            x.astype(dtype)
+            if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating)
+            else x
+        ),
+        tree,
+    )
+
+
+def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    from jaxgran import bem
+    from jaxgran.simulate import run_segment
+
+    dname = jnp.dtype(dt).name
+    ops = cast(ops64, dt)
+    fl = bem._flat_contacts(cp, cf, cm)
+    a = (
+        jnp.asarray(cp, dt), jnp.asarray(cf, dt), jnp.asarray(cm), jnp.asarray(fl[0]),
+        jnp.asarray(fl[1], dt), jnp.asarray(fl[2], dt), jnp.asarray(fl[3]),
+    )  # fmt: skip
+    th = jnp.asarray(thick, dt)
+    st, pr = cast(state, dt), cast(params, dt)
+    step = median_ms(lambda st=st, pr=pr: run_segment(st, pr, grid, 1, args.steps), 5)
+    step /= args.steps
+
+    def full(o, c, f, m, *_, th=th):
+        return bem.psi_batched(o, c, f, m, thickness=th)[1]
+
+    def bnd_padded(o, c, f, m, *_, th=th):
+        return bem.psi_bound(o, c, f, m, thickness=th)
+
+    def bnd(o, c, f, m, fp, fx, ff, fm, th=th):
+        return bem.psi_bound_flat(o, fp, fx, ff, fm, thickness=th)
+
+    def scr(k, thr):
+        def fn(o, c, f, m, *flat, th=th):
+            return bem._screen_core(o, c, f, m, jnp.asarray(thr, dt), th, k, flat).psi
+
+        return fn
+
+    def looped(fn):
+        @jax.jit
+        def run(o, c, f, m, fp, fx, ff, fm):
+            def body(i, acc):
+                s = 1 + 1e-3 * i.astype(dt)
+                x = 1 + 1e-6 * (s - 1)
+                out = fn(o, c * x, f * s, m, fp, fx * x, ff * s, fm)
+                return acc + jnp.sum(out)
+
+            return lax.fori_loop(0, LOOP, body, jnp.zeros((), dt))
+
+        return run
+
+    res = {"contact_step_ms": step}
+    kinds = {
+        "full field": full,
+        "bound, padded contact lists": bnd_padded,
+        "bound, flat list of real contacts": bnd,
+    }
+    for r in rows:
+        kinds[f"screening, {r['threshold']} (K = {r['K']})"] = scr(r["K"], r["eps_Pa"])
+    for name, fn in kinds.items():
+        once, loop = jax.jit(fn), looped(fn)
+        one = median_ms(lambda f=once: f(ops, *a), args.repeats)
+        marg = median_ms(lambda f=loop: f(ops, *a), max(3, args.repeats // 3)) / LOOP
+        res[name] = {"call_ms": one, "marginal_ms": marg}
+        print(dname, name, f"{one:.2f} ms, marginal {marg:.2f} ms", flush=True)
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cells", type=int, default=1300)
+    ap.add_argument("--width", type=float, default=0.75, help="box width (m)")
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--steps", type=int, default=200, help="contact steps per timed segment")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "SCREENING_RESULTS"))
+    ap.add_argument("--cache", default=None, help="pickle of the settled pile, reused if present")
+    args = ap.parse_args()
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxgran import bem
+    from jaxgran.breakage import dsm
+
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    state, params, grid, cfg = settled_pile(args.cells, args.width, args.cache)
+    state, params, grid = (
+        jax.tree_util.tree_map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, t)
+        for t in (state, params, grid)
+    )
+    t_pile = time.perf_counter() - t0
+    p = state.particles
+    n_act = int(p.active.sum())
+    print(f"pile: {n_act} particles settled in {t_pile:.0f} s", flush=True)
+    thick = cfg.thickness
+
+    def table(k):
+        return dsm.contact_table(
+            state, params, jnp.asarray(1.0), jnp.asarray(0.0), jnp.asarray(3.4351),
+            jnp.asarray(thick), k,
+        )  # fmt: skip
+
+    # the contact list is sized as the DSM sizes it: a power of two holding the longest one
+    count = np.asarray(table(8)["count"])
+    max_contacts = max(8, 1 << (int(count.max()) - 1).bit_length())
+    tab = table(max_contacts)
+    act = np.flatnonzero(np.asarray(p.active))
+    cp, cf, cm = (np.asarray(tab[k])[act] for k in ("points", "forces", "mask"))
+    ops64 = bem.build_operators(
+        p.verts[act], p.n_verts[act], p.radius[act], n_elements=64, n_points=100,
+        poisson_ratio=0.3,
+    )  # fmt: skip
+    _, psi = bem.psi_batched(ops64, cp, cf, cm, thickness=thick)
+    psi_max = np.asarray(psi).max(axis=1)
+    bound = np.asarray(bem.psi_bound(ops64, cp, cf, cm, thickness=thick))
+    loaded = psi_max > 0
+    if np.any(bound[loaded] < psi_max[loaded]):
+        raise AssertionError("the bound fell below the field: a bug")
+    ratio = bound[loaded] / psi_max[loaded]
+    n_contacts = cm.sum(axis=1)
+
+    rows = []
+    for label, q in (("first particle", None), ("top 1 %", 99.0), ("top 10 %", 90.0)):
+        thr = float(psi_max.max() if q is None else np.percentile(psi_max, q))
+        thr *= 1.0 - 1e-6  # just below: equality would be decided by rounding
+        ref = set(np.flatnonzero(psi_max >= thr).tolist())
+        s = bem.screen(ops64, cp, cf, cm, thr, thickness=thick, max_candidates=8)
+        got = set(np.asarray(s.candidates)[np.asarray(s.reaches)].tolist())
+        if got != ref:
+            raise AssertionError(f"screening missed or added particles at {label}")
+        rows.append(
+            {
+                "threshold": label,
+                "eps_Pa": thr,
+                "reaching": len(ref),
+                "candidates": int(s.n_candidates),
+                "K": int(s.candidates.shape[0]),
+            }
+        )
+        print(rows[-1], flush=True)
+
+    timing = {
+        jnp.dtype(dt).name: time_dtype(
+            dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args
+        )
+        for dt in (jnp.float32, jnp.float64)
+    }
+
+    out = {
+        "machine": cpu_name(),
+        "cores": os.cpu_count(),
+        "date": datetime.date.today().isoformat(),
+        "jax": jax.__version__,
+        "load_average": [load0, os.getloadavg()[0]],
+        "particles": n_act,
+        "pile_seconds": t_pile,
+        "contacts_per_particle": float(n_contacts.mean()),
+        "contact_list_length": max_contacts,
+        "bound_over_field": {
+            "min": float(ratio.min()),
+            "median": float(np.median(ratio)),
+            "max": float(ratio.max()),
+        },
+        "thresholds": rows,
+        "timing": timing,
+    }
+    Path(args.out + ".json").write_text(json.dumps(out, indent=1))
+    write_markdown(out, Path(args.out + ".md"), args)
+
+
+def write_markdown(out, path: Path, args) -> None:
+    b = out["bound_over_field"]
+    lines = [
+        "## Breakage screening of a settled pile (`python benchmarks/bench_screening.py`)",
+        "",
+        f"Machine: {out['machine']}, {out['cores']} cores; jax {out['jax']} (cpu); "
+        f"{out['date']}; load average {out['load_average'][0]:.1f} at the start, "
+        f"{out['load_average'][1]:.1f} at the end. Compilation excluded, medians of "
+        f"{args.repeats} runs (marginal costs: {LOOP} evaluations in one jitted loop, median "
+        f"of {max(3, args.repeats // 3)}).",
+        "",
+        f"Pile: the `deposit` scene with {args.cells} cells in a {args.width} m box, settled "
+        f"under gravity: {out['particles']} particles, {out['contacts_per_particle']:.1f} "
+        f"vertex contacts per particle on average (lists padded to {out['contact_list_length']}, "
+        "as the DSM pads them). BEM: N = 64, at most M = 100 sample points, "
+        "plane stress, nu = 0.3, Flamant load model.",
+        "",
+        f"Bound / largest psi of each loaded particle: min {b['min']:.2f}, median "
+        f"{b['median']:.2f}, max {b['max']:.2f} (a bound below 1 would be a bug; the "
+        "benchmark stops if it sees one).",
+        "",
+        "| threshold eps at which | particles reaching eps | passing the bound | K |",
+        "|---|---|---|---|",
+    ]
+    for r in out["thresholds"]:
+        lines.append(
+            f"| {r['threshold']} reaches it | {r['reaching']} | {r['candidates']} | {r['K']} |"
+        )
+    lines += [
+        "",
+        "At each threshold the two-level screening returned exactly the particles whose full "
+        "field reaches eps.",
+        "",
+        "| dtype | part | one call (ms) | marginal (ms) | % of one contact step |",
+        "|---|---|---|---|---|",
+    ]
+    for dname, res in out["timing"].items():
+        step = res["contact_step_ms"]
+        lines.append(f"| {dname} | contact step of the pile | {step:.2f} | | 100 |")
+        for name, v in res.items():
+            if name == "contact_step_ms":
+                continue
+            lines.append(
+                f"| {dname} | {name} | {v['call_ms']:.2f} | {v['marginal_ms']:.2f} | "
+                f"{100 * v['call_ms'] / step:.0f} (marginal {100 * v['marginal_ms'] / step:.0f}) |"
+            )
+    path.write_text("\n".join(lines) + "\n")
+    print(path.read_text())
+
+
+if __name__ == "__main__":
+    main()
