@@ -73,7 +73,9 @@ def settled_pile(cells: int, width: float, cache: str | None = None):
             return (*pile, cfg)
     state, params, grid = _pour(cfg)
     if cache:
-        pile = jax.tree_util.tree_map(np.asarray, (state, params, grid))
+        pile = jax.tree_util.tree_map(
+            lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, (state, params, grid)
+        )
         with open(cache, "wb") as fh:
             pickle.dump(((cells, width), pile), fh)
     return state, params, grid, cfg
@@ -84,6 +86,15 @@ def _pour(cfg):
 
     res, _, _ = deposit.pour(cfg, frame_every=10**9)
     return res.state, res.params, res.grid
+
+
+def _to_device(x):
+    import jax.numpy as jnp
+    import numpy as np
+
+    if isinstance(x, np.ndarray):
+        return x.item() if x.dtype == object else jnp.asarray(x)
+    return x
 
 
 def cast(tree, dtype):
@@ -187,10 +198,7 @@ def main() -> None:
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     state, params, grid, cfg = settled_pile(args.cells, args.width, args.cache)
-    state, params, grid = (
-        jax.tree_util.tree_map(lambda x: jnp.asarray(x) if isinstance(x, np.ndarray) else x, t)
-        for t in (state, params, grid)
-    )
+    state, params, grid = (jax.tree_util.tree_map(_to_device, t) for t in (state, params, grid))
     t_pile = time.perf_counter() - t0
     p = state.particles
     n_act = int(p.active.sum())

@@ -584,27 +584,75 @@ def _assign_contacts(contact_points, nodes, centre, node_angles):
     return lo, w_hi
 
 
-def _contact_elements(contact_points, nodes, centre, node_angles):
+# the binned element lookup of psi_bound_flat reads this many nodes past a bin's start
+_BIN_SPAN = 3
+
+
+def _angle_bins(node_angles):
+    """``[4 N]`` element holding the start of each of 4 N equal angular bins from node 0,
+    or -1 for all bins if one bin holds more than ``_BIN_SPAN`` node angles (``_binned_element``
+    is then not exact for this particle)."""
+    N = node_angles.shape[0]
+    Q = 4 * N
+    starts = node_angles[0] + jnp.arange(Q, dtype=node_angles.dtype) * (_TWO_PI / Q)
+    first = jnp.sum(node_angles[None, :] <= starts[:, None], axis=1) - 1
+    nxt = jnp.concatenate([first[1:], jnp.array([N - 1], first.dtype)])
+    ok = jnp.max(nxt - first) <= _BIN_SPAN
+    return jnp.where(ok, first, -1).astype(jnp.int32)
+
+
+def _binned_element(contact_point, centre, angle, bins):
+    """Element whose angular sector holds one contact, from the bins of ``_angle_bins``:
+    the count of node angles <= the contact's angle over a window of ``_BIN_SPAN + 2`` nodes
+    from one before the bin's start (rounding at a bin edge cannot move the answer).
+    ``angle(k)`` returns node angles of given indices. Equals ``_contact_elements``'s ``e``
+    when ``bins`` is not -1."""
+    Q = bins.shape[0]
+    N = Q // 4
+    theta0 = angle(0)
+    d = contact_point - centre
+    rel = jnp.mod(jnp.arctan2(d[1], d[0]) - theta0, _TWO_PI)
+    phi = theta0 + rel
+    q = jnp.clip(jnp.floor(rel * (Q / _TWO_PI)).astype(jnp.int32), 0, Q - 1)
+    base = jnp.maximum(bins[q] - 1, 0)
+    k = base + jnp.arange(_BIN_SPAN + 2)
+    count = base + jnp.sum((k < N) & (angle(jnp.minimum(k, N - 1)) <= phi))
+    return jnp.clip(count - 1, 0, N - 1)
+
+
+def _contact_elements(contact_points, nodes, centre, node_angles, e=None, n_elements=None):
     """The element holding each contact and its hat split over two elements.
 
     The element ``e`` is the one whose angular sector (seen from ``centre``) holds the contact:
     C x N comparisons, no distances. Returns (``e`` [C], first element of the split ``lo`` [C]
-    in 0..N-1, weight ``w`` in [0, 1] of element ``(lo + 1) mod N`` [C]).
+    in 0..N-1, weight ``w`` in [0, 1] of element ``(lo + 1) mod N`` [C]). ``nodes`` is the
+    ``[N, 2]`` array or a function returning the nodes of given indices; ``e`` the element
+    if already known (``_binned_element``; ``node_angles`` is then not read, and
+    ``n_elements`` gives N).
     """
-    N = nodes.shape[0]
-    d = contact_points - centre
-    theta0 = node_angles[0]
-    phi = theta0 + jnp.mod(jnp.arctan2(d[:, 1], d[:, 0]) - theta0, _TWO_PI)
-    e = jnp.clip(jnp.sum(node_angles[None, :] <= phi[:, None], axis=1) - 1, 0, N - 1)
-    a = nodes[e]
-    ab = nodes[(e + 1) % N] - a
+    N = node_angles.shape[0] if n_elements is None else n_elements
+    if callable(nodes):
+        node = nodes
+    else:
+
+        def node(k):
+            return nodes[k]
+
+    if e is None:
+        d = contact_points - centre
+        theta0 = node_angles[0]
+        phi = theta0 + jnp.mod(jnp.arctan2(d[:, 1], d[:, 0]) - theta0, _TWO_PI)
+        e = jnp.clip(jnp.sum(node_angles[None, :] <= phi[:, None], axis=1) - 1, 0, N - 1)
+    a = node(e)
+    b = node((e + 1) % N)
+    ab = b - a
     le2 = jnp.sum(ab * ab, axis=-1)
     le = jnp.sqrt(le2)
     u = jnp.clip(_safe_div(jnp.sum((contact_points - a) * ab, axis=-1), le2), 0.0, 1.0) * le
     ahead = u >= 0.5 * le
     prev = (e - 1) % N
-    l_next = _safe_norm(nodes[(e + 2) % N] - nodes[(e + 1) % N])
-    l_prev = _safe_norm(nodes[e] - nodes[prev])
+    l_next = _safe_norm(node((e + 2) % N) - b)
+    l_prev = _safe_norm(a - node(prev))
     w_next = _safe_div(u - 0.5 * le, 0.5 * (le + l_next))  # weight of e + 1 when ahead
     w_prev = _safe_div(0.5 * le - u, 0.5 * (le + l_prev))  # weight of e - 1 when behind
     lo = jnp.where(ahead, e, prev)
@@ -987,6 +1035,9 @@ class BemOperators(eqx.Module):
             from node 0; a contact's element is found from its angle (C x N comparisons).
         screen_table: ``[P, N, G, 4]``: per element and group of sample points (G angular
             sectors) the numbers of the screening bound ``psi_bound`` (``_screen_tables``).
+        angle_bins: ``[P, 4 N]`` (int): element at the start of each of 4 N equal angle bins
+            from node 0, -1 where a bin holds more than ``_BIN_SPAN`` nodes (then the
+            element lookup of ``psi_bound_flat`` compares with every node instead).
         poisson_ratio: nu used in the kernels (-).
         plane: ``"stress"`` or ``"strain"`` (static).
         load_model: ``"flamant"`` or ``"element"`` (static).
@@ -1005,6 +1056,7 @@ class BemOperators(eqx.Module):
     centres: jax.Array
     node_angles: jax.Array
     screen_table: jax.Array
+    angle_bins: jax.Array
     poisson_ratio: jax.Array
     plane: str = eqx.field(static=True)
     load_model: str = eqx.field(static=True)
@@ -1071,7 +1123,9 @@ def _build_one(verts, n_verts, radius, nu_kernel, q, *, n_elements, n_points, lo
     k_f = jnp.where(valid & mask[None, None, :, None], k_f, 0.0)
     centre, angles = _node_angles(nodes)
     table = _screen_tables(k_f, nodes, points, mask, centre, q, _SCREEN_GROUPS)
-    return nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles, table
+    bins = _angle_bins(angles)
+    out = nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles
+    return (*out, table, bins)
 
 
 @jax.jit(static_argnames=("n_elements", "n_points", "load_model", "batch_size"))
@@ -1157,7 +1211,8 @@ def build_operators(
     )
     if pad:
         out = [x[:P] for x in out]
-    nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles, table = out
+    nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles = out[:12]
+    table, bins = out[12:]
     return BemOperators(
         nodes=nodes,
         midpoints=mid,
@@ -1172,6 +1227,7 @@ def build_operators(
         centres=centre,
         node_angles=angles,
         screen_table=table,
+        angle_bins=bins,
         poisson_ratio=jnp.asarray(nu, verts.dtype),
         plane=plane,
         load_model=load_model,
@@ -1304,7 +1360,7 @@ def _equilibrate_flat(x, f, mask, particle, n_particles):
     return jnp.where((count >= 2)[particle][:, None], f2, f)
 
 
-def _bound_terms(table, nodes, centre, node_angles, cp, f, c_uniaxial, flamant):
+def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     """Per contact and point group, the bound of its psi (Pa x thickness), ``[G]``.
 
     psi is a norm of the stress (``_psi_form``), and the stress is a sum over contacts of
@@ -1316,24 +1372,27 @@ def _bound_terms(table, nodes, centre, node_angles, cp, f, c_uniaxial, flamant):
     the distances of p from the chord and from its line:
     |n . e| / rho <= (h + eta) / (d - eta)^2 and |t . e| / rho <= min(1 / (d - eta),
     1 / (2 (h - eta))). A contact with eta not below d and h (deep inside) gives +inf.
-    ``f`` is the (equilibrated) force ``[2]``; the other arguments are one particle's.
+    ``f`` is the (equilibrated) force ``[2]``, ``e`` the contact's element (of N = ``n_el``);
+    ``table(r)`` and ``nodes(k)`` return the particle's ``[G, 4]`` table row of element r and
+    its node k (gathers from the arrays of all particles, so that only the rows used are
+    read); ``centre`` is the particle's.
     """
-    n_el = nodes.shape[0]
-    e, lo, w = _contact_elements(cp[None], nodes, centre, node_angles)
-    e, lo, w = e[0], lo[0], w[0]
+    _, lo, w = _contact_elements(cp[None], nodes, centre, None, e=e[None], n_elements=n_el)
+    lo, w = lo[0], w[0]
     fm = _safe_norm(f)
-    op = table[..., 0]
-    per = fm * ((1.0 - w) * op[lo] + w * op[(lo + 1) % n_el])  # [G]
+    op_lo, op_hi = table(lo)[:, 0], table((lo + 1) % n_el)[:, 0]
+    per = fm * ((1.0 - w) * op_lo + w * op_hi)  # [G]
     if flamant:
-        a = nodes[e]
-        ab = nodes[(e + 1) % n_el] - a
+        a = nodes(e)
+        ab = nodes((e + 1) % n_el) - a
         le = jnp.maximum(_safe_norm(ab), 1e-300)
         tang = ab / le
         t = jnp.clip(jnp.sum((cp - a) * tang) / le, 0.0, 1.0)
         eta = _safe_norm(cp - a - t * ab)
         f_n = jnp.abs(_cross2(tang, f))  # F . n with n = perp(t)
         f_t = jnp.abs(jnp.sum(f * tang))
-        ratio, d_min, h_min = table[e, :, 1], table[e, :, 2], table[e, :, 3]  # [G]
+        row = table(e)
+        ratio, d_min, h_min = row[:, 1], row[:, 2], row[:, 3]  # [G]
         ok = (d_min > eta) & (h_min > eta)
         dd = jnp.where(ok, d_min - eta, 1.0)
         hh = jnp.where(ok, h_min - eta, 1.0)
@@ -1365,18 +1424,37 @@ def psi_bound_flat(
     f = _equilibrate_flat(cp, contact_forces.astype(dtype), contact_mask, particle, P)
     c_uni = equivalent_stress(jnp.array([1.0, 0.0, 0.0], dtype), ops.poisson_ratio, ops.plane)
     flamant = ops.load_model == "flamant"
+    n_el = ops.node_angles.shape[1]
+
+    def binned(_):
+        return jax.vmap(
+            lambda i, x: _binned_element(
+                x, ops.centres[i], lambda k: ops.node_angles[i, k], ops.angle_bins[i]
+            )
+        )(particle, cp)
+
+    def compared(_):
+        return jax.vmap(
+            lambda i, x: _contact_elements(
+                x[None], lambda k: ops.nodes[i, k], ops.centres[i], ops.node_angles[i]
+            )[0][0]
+        )(particle, cp)
+
+    exact_bins = jnp.all(~contact_mask | (ops.angle_bins[particle, 0] >= 0))
+    element = lax.cond(exact_bins, binned, compared, None)
     terms = jax.vmap(
-        lambda i, x, g: _bound_terms(
-            ops.screen_table[i],
-            ops.nodes[i],
+        lambda i, x, g, e: _bound_terms(
+            lambda r: ops.screen_table[i, r],
+            lambda k: ops.nodes[i, k],
             ops.centres[i],
-            ops.node_angles[i],
+            e,
+            n_el,
             x,
             g,
             c_uni,
             flamant,
         )  # fmt: skip
-    )(particle, cp, f)
+    )(particle, cp, f, element)
     terms = jnp.where(contact_mask[:, None], terms, 0.0)
     b = jnp.max(jax.ops.segment_sum(terms, particle, num_segments=P), axis=1)
     thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))

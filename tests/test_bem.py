@@ -715,3 +715,35 @@ def test_flat_bound_equals_padded_bound(batch):
     )
     eq = np.asarray(jax.vmap(bem._equilibrate)(cp, np.where(mask[..., None], cf, 0.0), mask))
     np.testing.assert_allclose(eq_flat, eq.reshape(-1, 2)[order], atol=1e-12 * np.abs(cf).max())
+
+
+def test_binned_element_lookup_equals_the_full_comparison(batch):
+    """The binned lookup of the contact's element (a few node angles read) gives the element
+    of the full comparison with every node angle, and without bins (-1, a particle whose bin
+    holds too many nodes) the flat bound falls back to the full comparison unchanged."""
+    *_, ops, _, _, _ = batch
+    P = ops.lengths.shape[0] - 1  # the last slot is invalid
+    assert np.all(np.asarray(ops.angle_bins[:P, 0]) >= 0)
+    cp, cf, mask = random_loads(ops, 6, 5, offset=0.5)
+    rows = np.repeat(np.arange(P), 6)
+    pts = jnp.asarray(cp[:P].reshape(-1, 2))
+
+    def binned(i, x):
+        return bem._binned_element(
+            x, ops.centres[i], lambda k: ops.node_angles[i, k], ops.angle_bins[i]
+        )
+
+    def compared(i, x):
+        return bem._contact_elements(x[None], ops.nodes[i], ops.centres[i], ops.node_angles[i])[0][
+            0
+        ]
+
+    np.testing.assert_array_equal(
+        np.asarray(jax.vmap(binned)(rows, pts)), np.asarray(jax.vmap(compared)(rows, pts))
+    )
+    no_bins = eqx.tree_at(lambda o: o.angle_bins, ops, -jnp.ones_like(ops.angle_bins))
+    np.testing.assert_allclose(
+        np.asarray(bem.psi_bound(no_bins, cp, cf, mask)),
+        np.asarray(bem.psi_bound(ops, cp, cf, mask)),
+        rtol=1e-12,
+    )
