@@ -1507,8 +1507,9 @@ class Screening(NamedTuple):
         psi: ``[K, M]`` psi of the candidates (Pa), as ``psi_batched``.
         reaches: ``[K]`` candidate whose largest psi reaches the threshold.
         n_candidates: number of particles with bound >= threshold (scalar int).
-        complete: ``n_candidates <= K``: every particle not in ``candidates`` has psi below
-            the threshold at every sample point.
+        max_contacts: most real contacts of a particle in ``candidates`` (scalar int).
+        complete: ``n_candidates <= K`` (every particle not in ``candidates`` has psi below
+            the threshold at every sample point) and every candidate's contacts were used.
     """
 
     bound: jax.Array
@@ -1518,6 +1519,7 @@ class Screening(NamedTuple):
     psi: jax.Array
     reaches: jax.Array
     n_candidates: jax.Array
+    max_contacts: jax.Array
     complete: jax.Array
 
 
@@ -1538,10 +1540,13 @@ def _flat_contacts(contact_points, contact_forces, contact_mask):
 
 
 def _screen_core(
-    ops, contact_points, contact_forces, contact_mask, threshold, thickness, k, flat=None
+    ops, contact_points, contact_forces, contact_mask, threshold, thickness, k, flat=None,
+    c_keep=None,
 ):  # fmt: skip
     """The two levels of ``screen`` for K = ``k`` candidate slots (jit-able); ``flat``: the
-    same contacts as ``_flat_contacts`` (the bound then costs per real contact)."""
+    same contacts as ``_flat_contacts`` (the bound then costs per real contact); ``c_keep``:
+    the candidates' field is taken over their real contacts moved to the first ``c_keep``
+    slots (fewer padded slots to process; ``complete`` is False if one has more)."""
     P = ops.lengths.shape[0]
     dtype = ops.screen_table.dtype
     thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
@@ -1552,6 +1557,15 @@ def _screen_core(
         bound = psi_bound_flat(ops, *flat, thickness=thickness)
     ratio = bound / threshold
     top, idx = lax.top_k(ratio, k)
+    cp_k, cf_k, cm_k = contact_points[idx], contact_forces[idx], contact_mask[idx]
+    n_real = jnp.sum(cm_k, axis=1)
+    fits = jnp.asarray(True)
+    if c_keep is not None and c_keep < cm_k.shape[1]:
+        order = jnp.argsort(~cm_k, axis=1, stable=True)[:, :c_keep]
+        cp_k = jnp.take_along_axis(cp_k, order[..., None], axis=1)
+        cf_k = jnp.take_along_axis(cf_k, order[..., None], axis=1)
+        cm_k = jnp.take_along_axis(cm_k, order, axis=1)
+        fits = jnp.all(n_real <= c_keep)
     stress = jax.vmap(
         lambda i, cp, cf, cm: _contact_stress(
             ops.stress_per_force,
@@ -1565,7 +1579,7 @@ def _screen_core(
             ops.load_model,
             pid=i,
         )
-    )(idx, contact_points[idx].astype(dtype), contact_forces[idx].astype(dtype), contact_mask[idx])
+    )(idx, cp_k.astype(dtype), cf_k.astype(dtype), cm_k)
     keep = ops.point_mask[idx] & ops.valid[idx][:, None]
     sigma = jnp.where(keep[..., None], stress / thickness[idx][:, None, None], 0.0)
     psi = jnp.where(keep, equivalent_stress(sigma, ops.poisson_ratio, ops.plane), 0.0)
@@ -1579,7 +1593,8 @@ def _screen_core(
         psi=psi,
         reaches=is_cand & (jnp.max(psi, axis=1) >= threshold[idx]),
         n_candidates=n_cand,
-        complete=n_cand <= k,
+        max_contacts=jnp.max(n_real),
+        complete=(n_cand <= k) & fits,
     )
 
 
@@ -1603,7 +1618,9 @@ def screen(
     answer is the same as thresholding ``psi_batched`` of all particles: particles left out
     are proven below the threshold. If more than ``max_candidates`` particles pass the bound,
     the call is repeated with K = the next power of two at or above their count (the K used
-    is ``Screening.candidates.shape[0]``; each K compiles once), so nothing is cut.
+    is ``Screening.candidates.shape[0]``; each K compiles once), so nothing is cut. The
+    candidates' field runs over their real contacts only (padded to a power of two, at least
+    8 slots or the list's length).
 
     Args:
         ops, contact_points, contact_forces, contact_mask, thickness: as in ``psi_batched``.
@@ -1629,8 +1646,12 @@ def screen(
         jnp.asarray(thickness, dtype),
     )
     flat = tuple(jnp.asarray(x) for x in _flat_contacts(*args[1:4]))
+    c_max = args[3].shape[1]
+    c_keep = min(c_max, 8)
     while True:
-        res = _screen_jit(*args, k, flat)
+        res = _screen_jit(*args, k, flat, c_keep)
         if bool(res.complete):
             return res
-        k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())
+        if int(res.n_candidates) > k:
+            k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())
+        c_keep = max(c_keep, min(c_max, 1 << (int(res.max_contacts) - 1).bit_length()))

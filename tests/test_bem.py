@@ -747,3 +747,28 @@ def test_binned_element_lookup_equals_the_full_comparison(batch):
         np.asarray(bem.psi_bound(ops, cp, cf, mask)),
         rtol=1e-12,
     )
+
+
+def test_screen_compacts_long_contact_lists(batch):
+    """With 12 contact slots and at most 8 real contacts, scattered, the candidates' field
+    runs over the real contacts moved to 8 slots and equals the full field; one particle
+    with 12 regrows the slots."""
+    *_, ops, _, _, _ = batch
+    cp, cf, mask = random_loads(ops, 12, 13)
+    mask[:, ::3] = False  # holes between the real contacts: at most 8 per particle
+    for full_row in (False, True):
+        if full_row:
+            mask[1, :] = True
+        psi = np.asarray(bem.psi_batched(ops, cp, cf, mask)[1])
+        thr = np.percentile(psi.max(1)[:-1], 10.0) * (1.0 - 1e-9)
+        k = ops.lengths.shape[0]  # all five slots
+        res = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, k, None, 8)
+        assert bool(res.complete) != full_row
+        res = bem.screen(ops, cp, cf, mask, thr, max_candidates=k)
+        assert bool(res.complete) and int(res.max_contacts) == (12 if full_row else 8)
+        idx = np.asarray(res.candidates)
+        np.testing.assert_allclose(
+            np.asarray(res.psi), psi[idx], rtol=1e-12, atol=1e-12 * psi.max()
+        )
+        got = set(idx[np.asarray(res.reaches)].tolist())
+        assert got == set(np.flatnonzero(psi.max(1) >= thr).tolist())
