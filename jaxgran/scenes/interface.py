@@ -546,7 +546,8 @@ def circle_stresses(state, spec: Specimen, centres, radius: float, thickness: fl
     """Mean stress in measurement circles ``[n, 2, 2]`` (Pa, tension positive) from the
     interface forces: ``sum_p w_p M_p / (T sum_p w_p A_p)`` with ``M_p`` the first moment of
     particle p (:func:`jaxgran.interface.particle_moment`), ``A_p`` its tile area and ``w_p``
-    the share of that tile inside the circle."""
+    the share of that tile inside the circle. A circle that covers no tile (one left in an
+    opened crack after a split) has no stress: its entry is NaN, on purpose."""
     p = state.particles
     moment = np.asarray(_particle_moment(p, state.bonds))
     act = np.asarray(p.active)
@@ -557,7 +558,11 @@ def circle_stresses(state, spec: Specimen, centres, radius: float, thickness: fl
     out = []
     for c in np.asarray(centres, float).reshape(-1, 2):
         w = _lens_area(r_t, radius, np.linalg.norm(pos - c, axis=1)) / tile
-        out.append(np.tensordot(w, moment, axes=1) / (thickness * np.sum(w * tile)))
+        covered = thickness * np.sum(w * tile)
+        if covered > 0:
+            out.append(np.tensordot(w, moment, axes=1) / covered)
+        else:
+            out.append(np.full((2, 2), np.nan))
     return np.array(out)
 
 
