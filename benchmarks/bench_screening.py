@@ -179,8 +179,8 @@ def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cells", type=int, default=1300)
-    ap.add_argument("--width", type=float, default=0.75, help="box width (m)")
+    ap.add_argument("--cells", type=int, default=1100)
+    ap.add_argument("--width", type=float, default=0.7, help="box width (m)")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--steps", type=int, default=200, help="contact steps per timed segment")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "SCREENING_RESULTS"))
