@@ -88,7 +88,12 @@ def cast(tree, dtype):
     import jax.numpy as jnp
 
     return jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree
+        lambda x: (
+            x.astype(dtype)
+            if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating)
+            else x
+        ),
+        tree,
     )
 
 

@@ -35,6 +35,7 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_bem import cast  # noqa: E402
 from machine import cpu_name  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,20 +96,6 @@ def _to_device(x):
     if isinstance(x, np.ndarray):
         return x.item() if x.dtype == object else jnp.asarray(x)
     return x
-
-
-def cast(tree, dtype):
-    import jax
-    import jax.numpy as jnp
-
-    return jax.tree_util.tree_map(
-        lambda x: (
-            x.astype(dtype)
-            if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating)
-            else x
-        ),
-        tree,
-    )
 
 
 def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):

@@ -1344,7 +1344,10 @@ def psi_batched(
 
 def _equilibrate_flat(x, f, mask, particle, n_particles):
     """``_equilibrate`` for a flat contact list: forces ``[S, 2]`` at ``x [S, 2]`` of
-    particles ``particle [S]``, each particle corrected with its own contacts."""
+    particles ``particle [S]``, each particle corrected with its own contacts. Kept apart
+    from ``_equilibrate``: routing the padded path through these segment sums made
+    ``psi_batched`` 40 % slower (4.5 -> 6.5 ms, 1,000 particles, float32); the two are
+    checked equal by ``tests/test_bem.py::test_flat_bound_equals_padded_bound``."""
     m = mask.astype(f.dtype)[:, None]
     f = m * f
 
