@@ -624,6 +624,46 @@ def clip_halfplanes(poly: ArrayLike, normals: ArrayLike, offsets: ArrayLike) -> 
     return _finish_clip(_clip_to_halfplanes(p, nrm, off), _size(p))
 
 
+def halfplane_clip_areas(poly: ArrayLike, normals: ArrayLike, offsets: ArrayLike) -> np.ndarray:
+    """Area of a convex polygon inside each half-plane ``normals[k] . x <= offsets[k]`` (m^2).
+
+    Vectorised over the half-planes (one shoelace sum per half-plane over the kept part of
+    every edge, closed by the chord from the exit point to the entry point), for searching
+    many candidate cuts at once; :func:`clip_halfplanes` returns the polygon of one.
+
+    Args:
+        poly: convex CCW polygon ``[n, 2]`` (m).
+        normals: ``[k, 2]`` (any length > 0).
+        offsets: ``[k]`` (m times the normal's length).
+
+    Returns:
+        ``[k]`` areas (m^2), between 0 and the polygon's area.
+    """
+    p = _as_points(poly, "poly")
+    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
+    off = np.asarray(offsets, dtype=np.float64).reshape(-1)
+    if len(nrm) != len(off):
+        raise ValueError(f"{len(nrm)} normals but {len(off)} offsets")
+    c = p.mean(axis=0)  # shoelace about a point inside: no cancellation of large terms
+    p = p - c
+    off = off - nrm @ c
+    q = np.roll(p, -1, axis=0)
+    d0 = p @ nrm.T - off[None, :]  # [n, k], <= 0 inside
+    d1 = np.roll(d0, -1, axis=0)
+    in0, in1 = d0 <= 0.0, d1 <= 0.0
+    crosses = in0 != in1
+    t = np.where(crosses, d0 / np.where(crosses, d0 - d1, 1.0), 0.0)
+    hit = p[:, None, :] + t[..., None] * (q - p)[:, None, :]  # [n, k, 2]
+    a = np.where(in0[..., None], p[:, None, :], hit)
+    b = np.where(in1[..., None], q[:, None, :], hit)
+    edges = np.where(in0 | in1, a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], 0.0).sum(0)
+    # the chord closes the kept part: from the exit point (in -> out) to the entry (out -> in)
+    exit_ = np.where((in0 & ~in1)[..., None], hit, 0.0).sum(0)
+    entry = np.where((~in0 & in1)[..., None], hit, 0.0).sum(0)
+    chord = exit_[:, 0] * entry[:, 1] - exit_[:, 1] * entry[:, 0]
+    return np.clip(0.5 * (edges + chord), 0.0, None)
+
+
 def point_in_convex_polygon(
     points: ArrayLike, verts: ArrayLike, *, tol: float | None = None
 ) -> np.ndarray:

@@ -387,6 +387,27 @@ def test_clip_convex_properties(a, b):
     assert abs(g.polygon_area(ab) - estimate) <= 0.1 * np.prod(hi - lo)
 
 
+@PROPERTY
+@given(convex_polygons(max_points=12), st.integers(0, 2**32 - 1))
+def test_halfplane_clip_areas_match_the_clipped_polygons(poly, seed):
+    """The vectorised areas equal the areas of the polygons clip_halfplanes returns, from
+    half-planes that miss the polygon (area 0) to ones that contain it (its area)."""
+    rng = np.random.default_rng(seed)
+    normals = rng.normal(size=(24, 2))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    c = poly.mean(axis=0)
+    size = g.circumradius(poly)
+    offsets = normals @ c + rng.uniform(-1.3, 1.3, 24) * size
+    got = g.halfplane_clip_areas(poly, normals, offsets)
+    ref = []
+    for n, o in zip(normals, offsets, strict=True):
+        q = g.clip_halfplanes(poly, n[None], [o])
+        ref.append(abs(g.polygon_area(q)) if len(q) else 0.0)
+    area = abs(g.polygon_area(poly))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * area)
+    assert np.all(got >= 0) and np.all(got <= area * (1 + 1e-12))
+
+
 def test_point_in_convex_polygon():
     square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     pts = np.array([[0.5, 0.5], [1.0, 0.5], [1.1, 0.5], [-1e-3, 0.2], [0.0, 0.0]])

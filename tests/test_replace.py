@@ -414,6 +414,94 @@ def test_local_erosion_removes_only_the_overlap_caps():
     assert lost["uniform"] - lost["none"] == pytest.approx(4 * d * (A + 2 * R) + cuts, rel=0.02)
 
 
+def _square_under_a_wedge(overlap, half_angle=math.pi / 6):
+    """The square (slot 0) with the apex of a wedge (slot 1) pressed into the middle of its
+    top face by ``overlap``."""
+    h = 0.01
+    tip = A / 2 + 2 * R - overlap
+    wedge = [[0, tip], [h * math.tan(half_angle), tip + h], [-h * math.tan(half_angle), tip + h]]
+    parts = particles_from_polygons(
+        [_square(), np.array(wedge)], R, RHO, capacity=4, vertex_capacity=8
+    )
+    params = make_params(normal_stiffness=1e6, tangential_stiffness=3e5, gravity=(0, 0), dt=1e-6)
+    grid = make_grid((-0.1, -0.1), (0.1, 0.1), 0.02, 2e-3)
+    state, err = prepare(make_state(parts, make_walls([])), params, grid)
+    assert int(err) == 0
+    return state, params, grid
+
+
+def test_local_erosion_at_a_contact_on_the_fracture_plane_costs_nothing_beyond_the_corners():
+    """A fracture plane through the contact point (as DSM planes join contacts): each half
+    has a corner under the wedge's apex, which the rounding of the new corner (radius R
+    > overlap) already clears. The local rule finds a clipping line that costs nothing
+    more; the least-penetration line of the earlier rule takes a strip overlap x (A + 2R)
+    off the whole top face."""
+    overlap = 2e-4
+    lost, clips = {}, {}
+    for mode in ("none", "local-axis", "local"):
+        state, params, grid = _square_under_a_wedge(overlap)
+        assert float(max_overlap(state)[0]) == pytest.approx(overlap, rel=1e-9)
+        state, ev = replace_particle(state, 0, _cut(state, 0, [[[0, -1], [0, 1]]]), erosion=mode)
+        lost[mode] = ev["mass_lost"] / RHO
+        state, err = prepare(state, params, grid)
+        assert int(err) == 0
+        frags = ev["fragment_slots"].tolist()
+        assert len(frags) == 2
+        clips[mode] = float(np.max(np.asarray(max_overlap(state))[frags]))
+    strip = overlap * (A + 2 * R)
+    assert lost["local-axis"] - lost["none"] == pytest.approx(strip, rel=1e-3)
+    assert lost["local"] - lost["none"] < 1e-6 * strip
+    assert clips["local"] == 0.0 and clips["local-axis"] == 0.0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_local_erosion_never_overlaps_and_never_keeps_less_than_the_axis_rule(seed):
+    """Random pile around a random parent: random wedges and boxes pressed into it by up to
+    0.4 R, random fracture lines. For every piece, the local rule's fragments overlap no
+    neighbour, and keep at least the mass the one-line-per-neighbour rule keeps."""
+    rng = np.random.default_rng(seed)
+    parent = geo.regular_polygon(6, 0.012, rng.uniform(0, 1), (0.0, 0.0))
+    parent = parent * rng.uniform(0.7, 1.3, size=(1, 2))
+    polys = [parent]
+    for phi in np.sort(rng.uniform(0, 2 * math.pi, size=4)):
+        n = rng.integers(3, 6)
+        body = geo.regular_polygon(int(n), 0.006, rng.uniform(0, 2 * math.pi), (0.0, 0.0))
+        u = np.array([math.cos(phi), math.sin(phi)])
+
+        # the body's lowest vertex along u on the parent's boundary ray, 2 R out (touching
+        # a face normal to u), then pressed in by 0.1-0.4 R
+        def cross(x, y):
+            return x[0] * y[1] - x[1] * y[0]
+
+        edge_hit = [
+            cross(a, b - a) / cross(u, b - a)
+            for a, b in zip(parent, np.roll(parent, -1, axis=0), strict=True)
+            if abs(cross(u, b - a)) > 1e-12
+        ]
+        s = min(t for t in edge_hit if t > 0)
+        low = body[np.argmin(body @ u)]
+        polys.append(body - low + u * (s + 2 * R - rng.uniform(0.1, 0.4) * R))
+    parts = particles_from_polygons(polys, R, RHO, capacity=16, vertex_capacity=12)
+    params = make_params(normal_stiffness=1e6, tangential_stiffness=3e5, gravity=(0, 0), dt=1e-6)
+    grid = make_grid((-0.1, -0.1), (0.1, 0.1), 0.02, 2e-3, cell_capacity=32)
+    state0, err = prepare(make_state(parts, make_walls([])), params, grid)
+    assert int(err) == 0
+    ov0 = np.asarray(max_overlap(state0))
+    n_lines = int(rng.integers(1, 4))
+    lines = [[rng.normal(0, 0.004, 2), rng.normal(0, 0.004, 2)] for _ in range(n_lines)]
+    kept, worst = {}, {}
+    for mode in ("local-axis", "local"):
+        state, ev = replace_particle(state0, 0, _cut(state0, 0, lines), erosion=mode)
+        kept[mode] = ev["fragment_masses"].sum()
+        state, err = prepare(state, params, grid)
+        assert int(err) == 0
+        worst[mode] = float(np.max(np.asarray(max_overlap(state))[ev["fragment_slots"]]))
+    assert ov0[0] > 0.05 * R  # the neighbours do press on the parent
+    assert ov0[1:5].min() > 0.0
+    assert worst["local"] == 0.0 and worst["local-axis"] == 0.0
+    assert kept["local"] >= kept["local-axis"] * (1 - 1e-12)
+
+
 def test_tangential_history_of_touched_slots_is_zeroed():
     state, params, grid = _row_of_three(1e-5)
     c = state.contacts

@@ -24,16 +24,18 @@ Geometry of a fragment (the erosion rule).
       loses ``r^2 (tan(a/2) - a/2)`` per new corner of exterior angle ``a``.
 
     That is ``erosion="uniform"``, the parent's largest overlap taken off all round. The
-    default ``erosion="local"`` takes material off only where a body overlaps the parent:
-    for every neighbour B that overlaps it now, the direction ``u`` of least penetration
-    (separating-axis test over the edge normals of both cores and the directions between
-    their vertices, which is exact for spheropolygons) defines B's supporting line
-    ``u . x = h_B(u) + r_B`` (``h_B`` the support function of B's core); every piece is
-    clipped to the far side of that line, and of every overlapping wall's line, before the
-    erosion by ``r + clearance``. Since B lies entirely on its side of its supporting line,
-    no fragment starts with an overlap, and what is lost is a cap of the overlap's depth
-    where each contact is instead of a strip all round (the mass loss falls by the ratio of
-    the contact widths to the perimeter; paper 000 reports 0.08 % in its oedometer).
+    default ``erosion="local"`` takes material off only where a body overlaps a piece: for
+    every unit ``u`` the line ``u . x = h_B(u) + r_B`` (``h_B`` the support function of
+    neighbour B's core) has all of B on one side, so clipping the piece to the other side
+    before the erosion by ``r + clearance`` leaves no overlap with B whatever ``u``; ``u`` is
+    chosen per piece to keep the most of it (:func:`separating_halfplane`). Where B presses
+    flat on a face the line runs parallel to it and a strip of the overlap's depth along the
+    contact goes; where a fracture plane runs through the contact point (DSM planes join
+    contacts), each piece has a corner there, and a line along B's flank cuts off a small
+    triangle instead of a strip the length of the face. An overlapping wall clips its strip.
+    ``erosion="local-axis"`` is the earlier rule (one line per neighbour, along its
+    direction of least penetration into the whole parent, for every piece), kept for
+    comparison (``docs/stability.md``).
 
     To make the erosion of a *polygonal* outline exact, :func:`dilated_outline` returns the
     polygon *circumscribed* to ``S`` (tangent to it on every flat edge and at ``n_arc`` points
@@ -85,13 +87,15 @@ __all__ = [
     "fragment_cores",
     "merge_small_pieces",
     "contact_halfplanes",
+    "overlapping_bodies",
+    "separating_halfplane",
     "max_overlap",
     "replace_particle",
     "replace_particles",
 ]
 
 # Erosion of the fragments (replace_particles): local clipping, uniform, or none.
-EROSION_MODES = ("local", "uniform", "none")
+EROSION_MODES = ("local", "local-axis", "uniform", "none")
 # Pieces below the smallest fragment: merged into a neighbour, or dropped as fines.
 SMALL_PIECE_MODES = ("merge", "fines")
 
@@ -104,6 +108,10 @@ _CLEARANCE_REL = 1e-9
 _CLEAN_REL = 1e-9
 # Pieces below this x min_area are dust (merge_small_pieces): merged only to fill a notch.
 _DUST_REL = 1e-3
+# Local erosion (separating_halfplane): evenly spaced directions searched per piece and
+# neighbour, and golden-section steps refining the best of them.
+_SEARCH_DIRECTIONS = 90
+_SEARCH_REFINE = 24
 # Default capacity growth factor when the free slots run out.
 _GROWTH = 2.0
 
@@ -369,18 +377,10 @@ def _penetration_axis(a: np.ndarray, ra: float, b: np.ndarray, rb: float):
     return u[best], float(gap[best])
 
 
-def contact_halfplanes(state: SimState, k: int, clearance: float = 0.0):
-    """Half-planes that keep fragments of particle ``k`` clear of every body overlapping it.
-
-    For each active particle B overlapping ``k`` now, with ``u`` its direction of least
-    penetration (from B towards ``k``), the fragments' dilated outline must satisfy
-    ``u . x >= h_B(u) + r_B + clearance``; for an overlapping wall (inward normal ``n``
-    through point ``p``), ``n . (x - p) >= clearance``.
-
-    Returns:
-        ``(normals [m, 2], offsets [m])`` in the convention ``normals . x <= offsets`` of
-        :func:`jaxgran.geometry.clip_halfplanes` (m).
-    """
+def _overlapping(state: SimState, k: int, clearance: float):
+    """Bodies overlapping particle ``k``: ``[(core [n, 2] m, radius m, u)]`` for the active
+    particles (``u`` the unit direction of least penetration, from the body towards ``k``)
+    and the half-planes ``normals . x <= offsets`` of the overlapping walls."""
     p = state.particles
     act = np.asarray(p.active)
     pos = np.asarray(p.pos, dtype=np.float64)
@@ -395,18 +395,17 @@ def contact_halfplanes(state: SimState, k: int, clearance: float = 0.0):
         return verts[m, : nv[m]] @ np.array([[c, s], [-s, c]]) + pos[m]
 
     a = core(k)
-    normals, offsets = [], []
+    bodies = []
     near = act & (np.linalg.norm(pos - pos[k], axis=1) < bound + bound[k])
     near[k] = False
     for m in np.flatnonzero(near):
         b = core(int(m))
         u, gap = _penetration_axis(a, rad[k], b, rad[m])
         if gap < 0.0:
-            normals.append(-u)
-            offsets.append(-((b @ u).max() + rad[m] + clearance))
+            bodies.append((b, float(rad[m]), u))
+    normals, offsets = [], []
     w = state.walls
-    w_act = np.asarray(w.active)
-    for q in np.flatnonzero(w_act):
+    for q in np.flatnonzero(np.asarray(w.active)):
         n = np.asarray(w.normal[q], dtype=np.float64)
         pt = np.asarray(w.point[q], dtype=np.float64)
         ext = np.asarray(w.extent[q], dtype=np.float64)
@@ -416,9 +415,129 @@ def contact_halfplanes(state: SimState, k: int, clearance: float = 0.0):
         if inside.any() and (rad[k] - (rel @ n)[inside].min()) > 0.0:
             normals.append(-n)
             offsets.append(-(n @ pt + clearance))
-    return np.reshape(np.array(normals, dtype=np.float64), (-1, 2)), np.array(
-        offsets, dtype=np.float64
+    return (
+        bodies,
+        np.reshape(np.array(normals, dtype=np.float64), (-1, 2)),
+        np.array(offsets, dtype=np.float64),
     )
+
+
+def contact_halfplanes(state: SimState, k: int, clearance: float = 0.0):
+    """Half-planes that keep fragments of particle ``k`` clear of every body overlapping it
+    (the ``local-axis`` rule).
+
+    For each active particle B overlapping ``k`` now, with ``u`` its direction of least
+    penetration (from B towards ``k``), the fragments' dilated outline must satisfy
+    ``u . x >= h_B(u) + r_B + clearance``; for an overlapping wall (inward normal ``n``
+    through point ``p``), ``n . (x - p) >= clearance``.
+
+    Returns:
+        ``(normals [m, 2], offsets [m])`` in the convention ``normals . x <= offsets`` of
+        :func:`jaxgran.geometry.clip_halfplanes` (m).
+    """
+    bodies, w_normals, w_offsets = _overlapping(state, k, clearance)
+    normals = [-u for _, _, u in bodies]
+    offsets = [-((b @ u).max() + r + clearance) for b, r, u in bodies]
+    return (
+        np.concatenate([np.reshape(np.array(normals, dtype=np.float64), (-1, 2)), w_normals]),
+        np.concatenate([np.array(offsets, dtype=np.float64), w_offsets]),
+    )
+
+
+def separating_halfplane(
+    piece: npt.ArrayLike,
+    body: npt.ArrayLike,
+    body_radius: float,
+    clearance: float = 0.0,
+    n_directions: int = _SEARCH_DIRECTIONS,
+) -> tuple[np.ndarray, float] | None:
+    """The half-plane that keeps the largest part of ``piece`` clear of a spheropolygon B.
+
+    For every unit ``u`` the half-plane ``u . x >= h_B(u) + r_B + clearance`` (``h_B`` the
+    support function of B's core) excludes ``B = core + disc(r_B)``, so the part of the
+    piece it keeps never overlaps B, whatever ``u``. The direction is chosen to keep the
+    most area: candidates are the edge normals of both polygons and the directions between
+    their vertices (among them the separating axis, when the piece does not overlap B, and
+    the flanks of a vertex of B poking into the piece), ``n_directions`` directions evenly
+    spaced, and a golden-section refinement around the best of them. Where a vertex of B
+    presses on a corner of the piece (a fracture plane through a contact point), a line
+    along B's flank cuts off a small triangle instead of a strip the length of the face.
+
+    Args:
+        piece: convex CCW polygon ``[m, 2]`` (m): a piece of the parent's dilated outline.
+        body: B's convex core ``[n, 2]`` (m), world frame (1-2 vertices allowed).
+        body_radius: B's sphero-radius r_B (m).
+        clearance: extra gap (m) >= 0.
+        n_directions: evenly spaced directions searched besides the geometric candidates.
+
+    Returns:
+        ``(normal [2], offset)`` in the convention ``normal . x <= offset`` of
+        :func:`jaxgran.geometry.clip_halfplanes`, or ``None`` when the piece does not
+        overlap B (nothing to clip).
+    """
+    q = np.asarray(piece, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(body, dtype=np.float64).reshape(-1, 2)
+    lift = float(body_radius) + float(clearance)
+
+    def offsets(u: np.ndarray) -> np.ndarray:  # keep u.x >= t: as -u.x <= -t
+        return -((b @ u.T).max(axis=0) + lift)
+
+    def kept(u: np.ndarray) -> np.ndarray:
+        return geo.halfplane_clip_areas(q, -u, offsets(u))
+
+    cand = [(q[:, None, :] - b[None, :, :]).reshape(-1, 2)]
+    for poly, sign in ((q, -1.0), (b, 1.0)):
+        if len(poly) >= 2:
+            e = np.roll(poly, -1, axis=0) - poly
+            cand.append(sign * np.stack([e[:, 1], -e[:, 0]], axis=1))  # outward of CCW
+    phi = 2.0 * math.pi * np.arange(int(n_directions)) / max(int(n_directions), 1)
+    cand.append(np.stack([np.cos(phi), np.sin(phi)], axis=1))
+    u = np.concatenate(cand)
+    length = np.linalg.norm(u, axis=1)
+    u = u[length > 1e-300] / length[length > 1e-300, None]
+    area = kept(u)
+    full = abs(geo.polygon_area(q))
+    best = int(np.argmax(area))
+    if area[best] >= full * (1.0 - 1e-12):
+        return None  # a separating axis keeps the whole piece: no overlap
+    # golden-section search on the angle around the best candidate (keeps the best seen)
+    theta = math.atan2(u[best, 1], u[best, 0])
+    best_u, best_a = u[best], float(area[best])
+    step = math.pi / max(int(n_directions), 4)
+    lo, hi = theta - step, theta + step
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
+
+    def at(t: float) -> tuple[float, np.ndarray]:
+        v = np.array([[math.cos(t), math.sin(t)]])
+        return float(kept(v)[0]), v[0]
+
+    f1, v1 = at(x1)
+    f2, v2 = at(x2)
+    for _ in range(_SEARCH_REFINE):
+        if f1 > best_a:
+            best_a, best_u = f1, v1
+        if f2 > best_a:
+            best_a, best_u = f2, v2
+        if f1 >= f2:
+            hi, x2, f2, v2 = x2, x1, f1, v1
+            x1 = hi - g * (hi - lo)
+            f1, v1 = at(x1)
+        else:
+            lo, x1, f1, v1 = x1, x2, f2, v2
+            x2 = lo + g * (hi - lo)
+            f2, v2 = at(x2)
+    return -best_u, float(offsets(best_u[None, :])[0])
+
+
+def overlapping_bodies(state: SimState, k: int, clearance: float = 0.0):
+    """The bodies that overlap particle ``k`` now: ``(cores, radii, wall_normals,
+    wall_offsets)``. ``cores`` are the world-frame cores ``[n_j, 2]`` (m) of the active
+    particles overlapping it and ``radii`` their sphero-radii (m); every overlapping wall
+    (inward normal ``n`` through ``p``) gives the half-plane ``-n . x <= -(n . p +
+    clearance)`` (convention of :func:`jaxgran.geometry.clip_halfplanes`)."""
+    bodies, w_normals, w_offsets = _overlapping(state, k, clearance)
+    return [b for b, _, _ in bodies], [r for _, r, _ in bodies], w_normals, w_offsets
 
 
 # ---------------------------------------------------------------------------- replacement
@@ -434,18 +553,45 @@ class _Fragment:
 
 
 class _PieceCut(NamedTuple):
-    """How an outline piece becomes a fragment core: clipped by the contact half-planes
-    (``normals . x <= offsets``, none when ``normals`` is None), eroded by ``r + delta``."""
+    """How an outline piece becomes a fragment core: clipped by fixed half-planes
+    (``normals . x <= offsets``: overlapping walls, and in ``local-axis`` mode one line per
+    overlapping neighbour; none when ``normals`` is None), then clear of each overlapping
+    neighbour in ``bodies`` (``(core, radius)``) by the half-plane that keeps the most of
+    that piece (:func:`separating_halfplane`, one neighbour after the other), eroded by
+    ``r + delta``. ``axis_normals``/``axis_offsets`` are the ``local-axis`` lines of the same
+    neighbours: where clipping by all of them keeps more of a piece than the search (the
+    search samples directions, and takes one neighbour after the other), they are used, so
+    the local rule never keeps less than the earlier one."""
 
     normals: np.ndarray | None
     offsets: np.ndarray | None
     r: float
     delta: float
+    bodies: tuple = ()
+    clearance: float = 0.0
+    axis_normals: np.ndarray | None = None
+    axis_offsets: np.ndarray | None = None
 
     def clip(self, q: np.ndarray) -> np.ndarray:
-        if self.normals is None:
-            return q
-        return geo.clip_halfplanes(q, self.normals, self.offsets)
+        return self.clip_count(q)[0]
+
+    def clip_count(self, q: np.ndarray) -> tuple[np.ndarray, int]:
+        """The clipped piece and how many neighbours it had to be clipped against."""
+        if self.normals is not None and len(self.normals):
+            q = geo.clip_halfplanes(q, self.normals, self.offsets)
+        base, n = q, 0
+        for core, radius in self.bodies:
+            if len(q) < 3:
+                break
+            h = separating_halfplane(q, core, radius, self.clearance)
+            if h is not None:
+                q = geo.clip_halfplanes(q, h[0][None, :], np.array([h[1]]))
+                n += 1
+        if n and self.axis_normals is not None and len(base) >= 3:
+            alt = geo.clip_halfplanes(base, self.axis_normals, self.axis_offsets)
+            if _area(alt) > _area(q):
+                return alt, n
+        return q, n
 
     def core(self, clipped: np.ndarray) -> np.ndarray | None:
         return None if len(clipped) < 3 else fragment_cores([clipped], self.r, self.delta)[0]
@@ -454,6 +600,10 @@ class _PieceCut(NamedTuple):
         """Area (m^2) of the fragment the piece ``q`` becomes, 0 if it vanishes."""
         core = self.core(self.clip(q))
         return 0.0 if core is None else _spheropolygon_area(core, self.r)
+
+
+def _area(q: np.ndarray) -> float:
+    return abs(geo.polygon_area(q)) if len(q) >= 3 else 0.0
 
 
 def _spheropolygon_area(core: np.ndarray, radius: float) -> float:
@@ -516,11 +666,14 @@ def replace_particles(
         overlap: ``[P]`` erosion beyond ``r`` (m) per slot, taken off all round; given, it
             overrides ``erosion``.
         clearance: added to the erosion (m); default ``1e-9`` x the parent's bound radius.
-        erosion: ``"local"`` (default: clip the pieces only where a neighbour or wall
-            overlaps the parent, :func:`contact_halfplanes`), ``"uniform"`` (erode by the
-            parent's largest overlap, :func:`max_overlap`, all round) or ``"none"`` (only the
-            sphero-radius, so fragments inherit the parent's overlaps; for comparisons, see
-            ``docs/stability.md``); module docstring.
+        erosion: ``"local"`` (default: clip each piece clear of every neighbour that
+            overlaps it by the line that keeps the most of that piece,
+            :func:`separating_halfplane`, and of every overlapping wall), ``"local-axis"``
+            (the earlier rule: one line per neighbour, along its direction of least
+            penetration into the parent, :func:`contact_halfplanes`, for every piece),
+            ``"uniform"`` (erode by the parent's largest overlap, :func:`max_overlap`, all
+            round) or ``"none"`` (only the sphero-radius, so fragments inherit the parent's
+            overlaps; for comparisons, see ``docs/stability.md``); module docstring.
         mean_initial_mass: mean particle mass at t = 0 (kg), for the breakage type (paper 000
             Table III); without it the type is not classified.
         growth: factor by which the particle capacity grows when free slots run out.
@@ -556,7 +709,7 @@ def replace_particles(
         raise ValueError(f"erosion must be one of {EROSION_MODES}, got {erosion!r}")
     if small_pieces not in SMALL_PIECE_MODES:
         raise ValueError(f"small_pieces must be one of {SMALL_PIECE_MODES}, got {small_pieces!r}")
-    local = overlap is None and erosion == "local"
+    local = overlap is None and erosion in ("local", "local-axis")
     mode = erosion if overlap is None else "uniform"  # a given overlap is taken off all round
     if overlap is None and erosion == "none":
         overlap = np.zeros(n_p)
@@ -577,16 +730,26 @@ def replace_particles(
         clear = _CLEARANCE_REL * float(arr["bound_radius"][k]) if clearance is None else clearance
         delta = max(float(overlap[k]), 0.0) + float(clear)
         pieces = [np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in rep.pieces]
-        normals, offsets = contact_halfplanes(state, k) if local else (None, None)
-        n_clips = len(offsets) if local else 0
-        cut = _PieceCut(normals, offsets, r, delta)
+        if mode == "local":
+            cores_b, radii_b, normals, offsets = overlapping_bodies(state, k, clear)
+            bodies = tuple(zip(cores_b, radii_b, strict=True))
+            n_clips = len(bodies) + len(offsets)
+            axis = contact_halfplanes(state, k, clear)
+        elif mode == "local-axis":
+            normals, offsets = contact_halfplanes(state, k)
+            bodies, n_clips, axis = (), len(offsets), (None, None)
+        else:
+            normals, offsets, bodies, n_clips, axis = None, None, (), 0, (None, None)
+        cut = _PieceCut(normals, offsets, r, delta, bodies, float(clear), *axis)
         n_merged = 0
         if small_pieces == "merge":
             pieces, n_merged = merge_small_pieces(pieces, cut.kept_area, min_area)
         if n_merged and len(pieces) == 1:  # nothing above the resolution breaks off
             plans.append((k, None, n_merged, len(rep.pieces)))
             continue
-        clipped = [cut.clip(q) for q in pieces]
+        clip_counts = [cut.clip_count(q) for q in pieces]
+        clipped = [c for c, _ in clip_counts]
+        n_piece_clips = sum(n for _, n in clip_counts)
         cores = [cut.core(q) for q in clipped]
         frags: list[_Fragment] = []
         fines_area = 0.0
@@ -605,7 +768,20 @@ def replace_particles(
             frags.append(_Fragment(core - c, c, m, inertia, area))
         fines_mass = fines_share if conserve_mass else rho * fines_area
         plans.append(
-            (k, r, rho, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged)
+            (
+                k,
+                r,
+                rho,
+                delta,
+                frags,
+                fines_mass,
+                m_parent,
+                a_parent,
+                rep,
+                n_clips,
+                n_merged,
+                n_piece_clips,
+            )
         )
 
     # 2. capacity: free slots and vertex slots
@@ -634,7 +810,8 @@ def replace_particles(
     touched: list[int] = []
     events = {}
     free_iter = iter(free)
-    for k, r, _rho, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged in plans:
+    for plan in plans:
+        k, r, _, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged, n_pc = plan
         pos_k = arr["pos"][k].copy()
         vel_k = arr["vel"][k].copy()
         om_k = float(arr["omega"][k])
@@ -699,6 +876,7 @@ def replace_particles(
             "erosion": delta,
             "erosion_mode": mode,
             "n_contact_clips": n_clips,
+            "n_piece_clips": n_pc,
             "planes": planes.reshape(-1, 2, 2),
             "position": pos_k,
         }
@@ -826,7 +1004,7 @@ def replace_particle(
         areal_density: kg/m^2; default the parent's (mass / area).
         min_area: smallest fragment area kept (m^2).
         overlap: erosion beyond r (m), all round; given, it overrides ``erosion``.
-        erosion: ``"local"`` (default), ``"uniform"`` or ``"none"``, see
+        erosion: ``"local"`` (default), ``"local-axis"``, ``"uniform"`` or ``"none"``, see
             :func:`replace_particles`.
         clearance: extra erosion (m); default ``1e-9`` x the parent's bound radius.
         mean_initial_mass: mean initial particle mass (kg) for the breakage type.
