@@ -42,6 +42,12 @@ VARIANTS = {
     "merge-r1": {"small_pieces": "merge", "sphero_radius": 1.0e-3},
     "merge-r05": {"small_pieces": "merge", "sphero_radius": 0.5e-3},
     "merge-r05-none": {"small_pieces": "merge", "sphero_radius": 0.5e-3, "erosion": "none"},
+    # the earlier local rule (one least-penetration line per neighbour for every piece)
+    "merge-r05-axis": {
+        "small_pieces": "merge",
+        "sphero_radius": 0.5e-3,
+        "erosion": "local-axis",
+    },
     "merge-r05-conserve": {
         "small_pieces": "merge",
         "sphero_radius": 0.5e-3,

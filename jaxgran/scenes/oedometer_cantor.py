@@ -98,7 +98,8 @@ class Config:
     records_per_segment: int = 10
     n_elements: int = 64  # DSM BEM elements
     n_points: int = 200  # DSM BEM sample points
-    erosion: str = "local"  # fragments' erosion: local, uniform, none (docs/stability.md)
+    # fragments' erosion: local, local-axis, uniform, none (docs/stability.md)
+    erosion: str = "local"
     # pieces below min_fragment_fraction: merge (into a neighbour piece) or fines (lost)
     small_pieces: str = "merge"
     # fragments keep their uneroded piece's mass (density compensation, paper 000 §III)

@@ -75,7 +75,7 @@ class Config:
     records_per_segment: int = 10
     n_elements: int = 64
     n_points: int = 200
-    erosion: str = "local"  # fragments' erosion: local, uniform, none
+    erosion: str = "local"  # fragments' erosion: local, local-axis, uniform, none
     small_pieces: str = "merge"  # pieces below min_fragment_fraction: merge or fines
     conserve_mass: bool = False  # density compensation of the erosion
     capacity_factor: float = 2.0  # particle slots at the start / n_cells (growth recompiles)
