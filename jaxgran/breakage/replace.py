@@ -435,7 +435,11 @@ def contact_halfplanes(state: SimState, k: int, clearance: float = 0.0):
         ``(normals [m, 2], offsets [m])`` in the convention ``normals . x <= offsets`` of
         :func:`jaxgran.geometry.clip_halfplanes` (m).
     """
-    bodies, w_normals, w_offsets = _overlapping(state, k, clearance)
+    return _axis_lines(*_overlapping(state, k, clearance), clearance)
+
+
+def _axis_lines(bodies, w_normals, w_offsets, clearance: float):
+    """The ``local-axis`` half-planes of :func:`_overlapping`'s bodies, walls appended."""
     normals = [-u for _, _, u in bodies]
     offsets = [-((b @ u).max() + r + clearance) for b, r, u in bodies]
     return (
@@ -731,10 +735,10 @@ def replace_particles(
         delta = max(float(overlap[k]), 0.0) + float(clear)
         pieces = [np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in rep.pieces]
         if mode == "local":
-            cores_b, radii_b, normals, offsets = overlapping_bodies(state, k, clear)
-            bodies = tuple(zip(cores_b, radii_b, strict=True))
+            near, normals, offsets = _overlapping(state, k, clear)
+            bodies = tuple((b, rb) for b, rb, _ in near)
             n_clips = len(bodies) + len(offsets)
-            axis = contact_halfplanes(state, k, clear)
+            axis = _axis_lines(near, normals, offsets, clear)
         elif mode == "local-axis":
             normals, offsets = contact_halfplanes(state, k)
             bodies, n_clips, axis = (), len(offsets), (None, None)
