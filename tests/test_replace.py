@@ -456,9 +456,13 @@ def test_local_erosion_at_a_contact_on_the_fracture_plane_costs_nothing_beyond_t
 
 @pytest.mark.parametrize("seed", range(6))
 def test_local_erosion_never_overlaps_and_never_keeps_less_than_the_axis_rule(seed):
-    """Random pile around a random parent: random wedges and boxes pressed into it by up to
-    0.4 R, random fracture lines. For every piece, the local rule's fragments overlap no
-    neighbour, and keep at least the mass the one-line-per-neighbour rule keeps."""
+    """Random pile around a random parent: four random triangles to pentagons pressed into it
+    by 0.1-0.4 R, 1-3 random fracture lines. The local rule's fragments overlap no
+    neighbour, and together keep at least the mass the one-line-per-neighbour rule keeps."""
+
+    def cross(x, y):
+        return x[0] * y[1] - x[1] * y[0]
+
     rng = np.random.default_rng(seed)
     parent = geo.regular_polygon(6, 0.012, rng.uniform(0, 1), (0.0, 0.0))
     parent = parent * rng.uniform(0.7, 1.3, size=(1, 2))
@@ -467,12 +471,8 @@ def test_local_erosion_never_overlaps_and_never_keeps_less_than_the_axis_rule(se
         n = rng.integers(3, 6)
         body = geo.regular_polygon(int(n), 0.006, rng.uniform(0, 2 * math.pi), (0.0, 0.0))
         u = np.array([math.cos(phi), math.sin(phi)])
-
         # the body's lowest vertex along u on the parent's boundary ray, 2 R out (touching
         # a face normal to u), then pressed in by 0.1-0.4 R
-        def cross(x, y):
-            return x[0] * y[1] - x[1] * y[0]
-
         edge_hit = [
             cross(a, b - a) / cross(u, b - a)
             for a, b in zip(parent, np.roll(parent, -1, axis=0), strict=True)
