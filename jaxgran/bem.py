@@ -1499,6 +1499,62 @@ def psi_bound(
     )
 
 
+# the fields of BemOperators that psi_bound / psi_bound_flat read
+BOUND_FIELDS = ("nodes", "centres", "node_angles", "angle_bins", "screen_table", "valid")
+
+
+def bound_operators(
+    *,
+    nodes: ArrayLike,
+    centres: ArrayLike,
+    node_angles: ArrayLike,
+    angle_bins: ArrayLike,
+    screen_table: ArrayLike,
+    valid: ArrayLike,
+    poisson_ratio: float | ArrayLike,
+    plane: Plane,
+    load_model: LoadModel,
+) -> BemOperators:
+    """Operators that carry only what ``psi_bound`` reads (``BOUND_FIELDS``).
+
+    The screening tables of P particles take ``P x N x (4 G + 7)`` numbers, against
+    ``P x N x 6 M`` for the whole operator, so every particle of a large packing can keep
+    its tables while the full operators are built (and cached) only for the particles that
+    pass the bound. The other fields hold size-1 placeholders: such operators must not be
+    given to ``psi_batched`` or ``screen``.
+
+    Args:
+        nodes ``[P, N, 2]``, centres ``[P, 2]``, node_angles ``[P, N]``, angle_bins
+        ``[P, 4 N]``, screen_table ``[P, N, G, 4]``, valid ``[P]``: the same fields of
+        operators from ``build_operators`` (stacked rows of several builds are fine).
+        poisson_ratio, plane, load_model: those of the builds.
+    """
+    _check_plane(plane)
+    _check_load_model(load_model)
+    nodes = jnp.asarray(nodes)
+    P, N = nodes.shape[:2]
+    dt = nodes.dtype
+    return BemOperators(
+        nodes=nodes,
+        midpoints=nodes,
+        normals=nodes,
+        lengths=jnp.zeros((P, N), dt),
+        points=jnp.zeros((P, 1, 2), dt),
+        point_mask=jnp.zeros((P, 1), bool),
+        grid_index=jnp.zeros((P, 1, 2), jnp.int32),
+        spacing=jnp.zeros((P,), dt),
+        stress_per_force=jnp.zeros((P, 1, 2, 1, 3), dt),
+        valid=jnp.asarray(valid, bool),
+        centres=jnp.asarray(centres, dt),
+        node_angles=jnp.asarray(node_angles, dt),
+        screen_table=jnp.asarray(screen_table, dt),
+        angle_bins=jnp.asarray(angle_bins),
+        poisson_ratio=jnp.asarray(poisson_ratio, dt),
+        plane=plane,
+        load_model=load_model,
+    )
+
+
 class Screening(NamedTuple):
     """Result of ``screen`` (P particles, K candidate slots, M sample points).
 

@@ -717,6 +717,29 @@ def test_flat_bound_equals_padded_bound(batch):
     np.testing.assert_allclose(eq_flat, eq.reshape(-1, 2)[order], atol=1e-12 * np.abs(cf).max())
 
 
+def test_bound_operators_give_the_bound_of_the_full_operators(batch):
+    """Operators holding only ``BOUND_FIELDS`` (what the DSM keeps for every particle) give
+    the full operators' bound, on stacked rows in another order too."""
+    *_, ops, _, _, _ = batch
+    cp, cf, mask = random_loads(ops, 4, 3)
+    ref = np.asarray(bem.psi_bound(ops, cp, cf, mask))
+    rows = {k: getattr(ops, k) for k in bem.BOUND_FIELDS}
+    light = bem.bound_operators(
+        **rows, poisson_ratio=ops.poisson_ratio, plane=ops.plane, load_model=ops.load_model
+    )
+    assert light.stress_per_force.size == 6 * ops.lengths.shape[0]
+    np.testing.assert_array_equal(np.asarray(bem.psi_bound(light, cp, cf, mask)), ref)
+    order = np.arange(ops.lengths.shape[0])[::-1]
+    turned = bem.bound_operators(
+        **{k: v[order] for k, v in rows.items()},
+        poisson_ratio=ops.poisson_ratio,
+        plane=ops.plane,
+        load_model=ops.load_model,
+    )
+    got = np.asarray(bem.psi_bound(turned, cp[order], cf[order], mask[order]))
+    np.testing.assert_array_equal(got, ref[order])
+
+
 def test_binned_element_lookup_equals_the_full_comparison(batch):
     """The binned lookup of the contact's element (a few node angles read) gives the element
     of the full comparison with every node angle, and without bins (-1, a particle whose bin

@@ -178,3 +178,83 @@ def test_two_neighbours_on_one_corner_do_not_break_a_lightly_loaded_particle():
     assert saddles[0].size >= 8 and np.all(np.isfinite(saddles[0]))
     assert saddles[0].max() < 0.2 * eps
     np.testing.assert_allclose(saddles[1], 2.0 * saddles[0], rtol=1e-6)
+
+
+# ----------------------------------------------------------------------------- screening
+
+
+def _pinched_square(force, a=2.0e-3):
+    """A 2 cm square grain (sphero-radius 0.2 mm, sharp corners) pinched at two opposite
+    corners: four 1 mm discs press its faces at distance ``a`` (m) from the corners, each
+    with ``force`` (N) along the face normal (balanced in force and moment)."""
+    from jaxgran.partition import make_grid
+    from jaxgran.state import make_params, make_state, make_walls, particles_from_polygons
+
+    k_n, r, r_d, half = 2.0e7, 2.0e-4, 1.0e-3, 0.01
+    h = half - r
+    d = r + r_d - force / k_n  # disc centre to the core face
+    core = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
+    discs = [
+        np.array([[half - a, h + d]]),
+        np.array([[h + d, half - a]]),
+        np.array([[a - half, -h - d]]),
+        np.array([[-h - d, a - half]]),
+    ]
+    parts = particles_from_polygons(
+        [core, *discs], [r] + [r_d] * 4, 12.0, capacity=8, vertex_capacity=4
+    )
+    params = make_params(
+        normal_stiffness=k_n,
+        tangential_stiffness=0.3 * k_n,
+        friction=0.74,
+        gravity=(0.0, 0.0),
+        thickness=0.01,
+        poisson_ratio=0.3,
+        skin=2.0e-4,
+    )
+    state = make_state(parts, make_walls([]), pair_capacity=32)
+    grid = make_grid((-0.03, -0.03), (0.03, 0.03), 0.01, 2.0e-4, cell_capacity=16)
+    state, err = prepare(state, params, grid)
+    assert int(err) == 0
+    return state, params, grid
+
+
+def test_bound_screening_catches_a_corner_chip_that_the_force_heuristic_misses():
+    """Loads pinching two corners break the grain far below the load that splits a
+    Brazilian disc of its area, so the force heuristic (largest neighbour force >= 0.5 of that load)
+    never sends it to the BEM. The psi bound is proven (psi <= bound), so it sends every
+    particle that the BEM would break, and none whose bound is below eps."""
+    eps = calibrate_eps(150.79, 0.01, thickness=0.01)
+
+    def dsm(params, grid, **kw):
+        return DsmBreakage(params, grid, eps=eps, n_elements=64, n_points=200, batch_size=1, **kw)
+
+    state, params, grid = _pinched_square(0.4 * 150.79)
+    force, bound, every = (
+        dsm(params, grid, screen="force"),
+        dsm(params, grid, screen="bound"),
+        dsm(params, grid, screen_fraction=0.0),
+    )
+    tab = force._table(state)
+    assert int(tab["n_neighbours"][0]) == 4
+    assert float(tab["max_force"][0]) < 0.4 * float(tab["critical_load"][0])
+    assert force.check(state) == [] and force.n_checked == 0  # missed
+    truth = every.check(state)
+    assert len(truth) == 1 and truth[0].slot == 0  # the BEM breaks it
+    found = bound.check(state)
+    assert len(found) == 1 and bound.n_checked == 1
+    np.testing.assert_array_equal(found[0].planes, truth[0].planes)
+    uid = int(state.particles.uid[0])
+    assert bound.last_saddle[uid] == pytest.approx(every.last_saddle[uid], rel=1e-12)
+    assert bound.last_saddle[uid] >= eps
+    # each plane joins two of the four contact points
+    contacts = np.array([[0.008, 0.01], [0.01, 0.008], [-0.008, -0.01], [-0.01, -0.008]])
+    ends = np.asarray(found[0].planes).reshape(-1, 2)
+    assert np.all(np.min(np.linalg.norm(ends[:, None] - contacts[None], axis=-1), 1) < 1e-4)
+    # a quarter of the load: psi is a quarter (linear BEM), below eps; the bound is below
+    # eps too, so the particle is not solved at all
+    state, *_ = _pinched_square(0.1 * 150.79)
+    light = dsm(params, grid, screen="bound")
+    assert light.check(state) == [] and light.n_checked == 0
+    assert every.check(state) == []
+    assert every.last_saddle[uid] == pytest.approx(0.25 * bound.last_saddle[uid], rel=0.02)

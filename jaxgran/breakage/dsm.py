@@ -3,10 +3,14 @@
 :class:`DsmBreakage` is a host callback for :func:`jaxgran.simulate.simulate`. Each call:
 
 1. **Screening** (jit, all particles at once): a particle goes on if it has at least two
-   contacts (neighbours or walls) and its largest contact force (resultant per neighbour)
-   exceeds ``screen_fraction`` times its critical load ``F_c = eps pi R_eq t / k(nu, plane)``
-   (``R_eq = sqrt(A / pi)``), the load that breaks a Brazilian disc of the same area
-   (:func:`critical_load`).
+   contacts (neighbours or walls) and, with ``screen="bound"`` (the default), the proven
+   upper bound of its largest psi (:func:`jaxgran.bem.psi_bound`, from per-shape tables kept
+   for every particle) reaches ``eps``: no particle that the BEM would break is screened
+   out. With ``screen="force"`` (a heuristic, the earlier rule) it goes on when its largest
+   contact force (resultant per neighbour) exceeds ``screen_fraction`` times its critical
+   load ``F_c = eps pi R_eq t / k(nu, plane)`` (``R_eq = sqrt(A / pi)``), the load that
+   breaks a Brazilian disc of the same area (:func:`critical_load`); a load concentrated
+   near an edge can break a particle well below that.
 2. **Contacts** (same jit): every particle's vertex contacts, the largest ``max_contacts``
    first, with their points and forces ON the particle in its body frame and the neighbour
    they come from (particle slot, or ``P + wall``); forces are those of the current springs.
@@ -75,6 +79,7 @@ from .ssm import split_convex
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "SCREEN_MODES",
     "DsmBreakage",
     "brazilian_factor",
     "calibrate_eps",
@@ -87,6 +92,9 @@ __all__ = [
 PAPER_EPS = 2.80251e6
 PAPER_FORCE = 150.79
 PAPER_RADIUS = 0.01
+
+# screening rules of DsmBreakage: the proven psi bound, or the contact-force heuristic
+SCREEN_MODES = ("bound", "force")
 
 
 # ---------------------------------------------------------------------------- calibration
@@ -341,6 +349,11 @@ def _spheropolygon_area_padded(verts: Array, n_verts: Array, radius: Array) -> A
 
 
 @eqx.filter_jit
+def _bound_jit(ops, contact_points, contact_forces, contact_mask, thickness):
+    return bem.psi_bound(ops, contact_points, contact_forces, contact_mask, thickness=thickness)
+
+
+@eqx.filter_jit
 def _psi_jit(ops, contact_points, contact_forces, contact_mask, thickness, poisson_ratio):
     return bem.psi_batched(
         ops,
@@ -381,8 +394,13 @@ class DsmBreakage:
         thickness: t (m); default ``params.thickness``.
         n_elements: BEM elements per particle (>= 2 x vertex capacity; raised if needed).
         n_points: BEM sample points per particle (capacity M).
-        screen_fraction: a particle is checked when its largest contact force exceeds this
-            fraction of its critical load ``eps pi R_eq t / k``.
+        screen: ``"bound"`` (default): a particle is checked when the proven upper bound of
+            its psi (:func:`jaxgran.bem.psi_bound`) reaches eps, so none that would break is
+            missed; the bound's tables (a few kB per shape) are kept for every particle.
+            ``"force"``: when its largest contact force exceeds ``screen_fraction`` of its
+            critical load (a heuristic: loads near an edge break below it).
+        screen_fraction: the fraction of ``screen="force"``; 0 checks every particle with
+            two or more neighbours (in either mode).
         min_area: fragments smaller than this (m^2) become fines.
         mean_initial_mass: mean particle mass at t = 0 (kg), for the breakage type.
         max_contacts: vertex contacts kept per particle (grown if exceeded; recompiles).
@@ -411,6 +429,7 @@ class DsmBreakage:
         thickness: float | None = None,
         n_elements: int = 64,
         n_points: int = 200,
+        screen: str = "force",
         screen_fraction: float = 0.5,
         min_area: float = 0.0,
         mean_initial_mass: float | None = None,
@@ -447,6 +466,9 @@ class DsmBreakage:
         if not 0.0 <= screen_fraction <= 1.0:
             raise ValueError(f"screen_fraction must lie in [0, 1], got {screen_fraction}")
         self.screen_fraction = float(screen_fraction)
+        if screen not in SCREEN_MODES:
+            raise ValueError(f"screen must be one of {SCREEN_MODES}, got {screen!r}")
+        self.screen = screen
         self.min_area = float(min_area)
         self.mean_initial_mass = mean_initial_mass
         self.max_contacts = int(max_contacts)
@@ -466,6 +488,12 @@ class DsmBreakage:
         self.last_saddle: dict[int, float] = {}  # uid -> highest saddle psi (Pa), last check
         self._cache: OrderedDict[int, dict[str, Array]] = OrderedDict()
         self._ops_static: dict[str, Any] | None = None
+        # screening tables of every shape built (uid -> BOUND_FIELDS rows), never evicted
+        # while the particle lives, and their stack by slot (device) with the slot's uid
+        self._bound_rows: dict[int, dict[str, Array]] = {}
+        self._bound_stack: dict[str, Array] | None = None
+        self._bound_uid = np.zeros(0, np.int64)
+        self.n_screened = 0  # particles that passed the screening, summed over calls
 
     # -------------------------------------------------------------- public entry points
 
@@ -503,7 +531,7 @@ class DsmBreakage:
         per-particle contact list first if a candidate has more contacts than it holds.
         Returns ``(slots, table)`` or ``None`` when nothing passes the screening."""
         tab = self._table(state)
-        cand = np.flatnonzero(np.asarray(tab["flag"]))
+        cand = self._flagged(state, tab)
         if cand.size == 0:
             return None
         count = np.asarray(tab["count"])[cand]
@@ -515,7 +543,69 @@ class DsmBreakage:
             )
             self.max_contacts = new
             tab = self._table(state)
+            cand = self._flagged(state, tab)
+            if cand.size == 0:
+                return None
+        self.n_screened += int(cand.size)
         return cand, {k: np.asarray(v)[cand] for k, v in tab.items()}
+
+    def _flagged(self, state: SimState, tab: dict[str, Array]) -> np.ndarray:
+        """Slots that pass the screening (see the class docstring). Under the bound, a
+        particle whose contact list was cut is flagged too (its bound would miss the
+        dropped contacts), so that ``_candidates`` grows the list."""
+        if self.screen == "force" or self.screen_fraction == 0.0:
+            return np.flatnonzero(np.asarray(tab["flag"]))
+        p = state.particles
+        live = np.asarray(p.active) & (np.asarray(tab["n_neighbours"]) >= 2)
+        if not live.any():
+            return np.zeros(0, np.int64)
+        dt = p.pos.dtype
+        bound = _bound_jit(
+            self._bound_operators(state),
+            tab["points"],
+            tab["forces"],
+            tab["mask"],
+            jnp.asarray(self.thickness, dt),
+        )
+        cut = np.asarray(tab["count"]) > self.max_contacts
+        return np.flatnonzero(live & ((np.asarray(bound) >= self.eps) | cut))
+
+    def _bound_operators(self, state: SimState) -> bem.BemOperators:
+        """Screening-only operators (:func:`jaxgran.bem.bound_operators`) of every slot:
+        the tables of each active particle's shape (built once per shape), invalid rows
+        for free slots. Only the rows whose particle changed are rewritten."""
+        p = state.particles
+        n_p = p.pos.shape[0]
+        self._fit_elements(state)
+        want = np.where(np.asarray(p.active), np.asarray(p.uid), -1).astype(np.int64)
+        missing = [
+            s for s in np.flatnonzero(want >= 0).tolist() if int(want[s]) not in self._bound_rows
+        ]
+        bs = self.batch_size
+        for start in range(0, len(missing), bs):
+            chunk = np.asarray(missing[start : start + bs])
+            self._operators(state, np.concatenate([chunk, np.full(bs - chunk.size, chunk[0])]))
+        if self._bound_stack is None or self._bound_uid.shape[0] != n_p:
+            row = next(iter(self._bound_rows.values()))
+            self._bound_stack = {k: jnp.zeros((n_p, *v.shape), v.dtype) for k, v in row.items()}
+            self._bound_uid = np.full(n_p, -2, np.int64)
+        stale = np.flatnonzero(want != self._bound_uid)
+        if stale.size:
+            blank = {k: jnp.zeros_like(v[0]) for k, v in self._bound_stack.items()}
+            rows = [self._bound_rows.get(int(want[s]), blank) for s in stale.tolist()]
+            idx = jnp.asarray(stale)
+            self._bound_stack = {
+                k: v.at[idx].set(jnp.stack([r[k] for r in rows]))
+                for k, v in self._bound_stack.items()
+            }
+            self._bound_uid = want
+        st = self._ops_static
+        return bem.bound_operators(
+            **self._bound_stack,
+            poisson_ratio=st["shared"]["poisson_ratio"],
+            plane=st["static"]["plane"],
+            load_model=st["static"]["load_model"],
+        )
 
     def check(self, state: SimState) -> list[_Decision]:
         """The breakage decisions for ``state`` (no state change)."""
@@ -551,6 +641,7 @@ class DsmBreakage:
                 continue
             replaced = True
             self._cache.pop(int(ev["parent_uid"]), None)
+            self._bound_rows.pop(int(ev["parent_uid"]), None)
             if "capacity_growth" in ev:
                 self._note(ev["capacity_growth"])
             self.events.append(ev)
@@ -584,6 +675,8 @@ class DsmBreakage:
             )
             self.n_elements = new
             self._cache.clear()
+            self._bound_rows.clear()
+            self._bound_stack = None
 
     def _operators(self, state: SimState, slots: np.ndarray) -> bem.BemOperators:
         """Stacked operators of ``slots`` (length ``batch_size``), built when not cached."""
@@ -593,6 +686,8 @@ class DsmBreakage:
         for s, u in zip(slots.tolist(), uids.tolist(), strict=True):
             if u in self._cache:
                 self._cache.move_to_end(u)
+                if u not in self._bound_rows:
+                    self._bound_rows[u] = {k: self._cache[u][k] for k in bem.BOUND_FIELDS}
             elif u not in [t[1] for t in todo]:
                 todo.append((s, u))
         bs = self.batch_size
@@ -629,6 +724,7 @@ class DsmBreakage:
             }
             for t, (_, u) in enumerate(chunk):
                 self._cache[u] = {k: v[t] for k, v in per.items()}
+                self._bound_rows[u] = {k: per[k][t] for k in bem.BOUND_FIELDS}
         while len(self._cache) > max(self.cache_size, bs):
             self._cache.popitem(last=False)
         stacked = {
@@ -645,13 +741,17 @@ class DsmBreakage:
         pad = np.concatenate([rows, np.full(bs - rows.size, rows[0])])
         slots = cand[pad]
         ops = self._operators(state, slots)
-        mask = host["mask"][pad].copy()
+        # the real contacts come first in each list: solve over the batch's longest list,
+        # rounded up to a power of two (at least 4), not over all max_contacts slots
+        longest = int(host["mask"][rows].sum(axis=1).max())
+        c = min(self.max_contacts, max(4, 1 << max(longest - 1, 0).bit_length()))
+        mask = host["mask"][pad, :c].copy()
         mask[rows.size :] = False
         dt = p.pos.dtype
         _, psi = _psi_jit(
             ops,
-            jnp.asarray(host["points"][pad], dt),
-            jnp.asarray(host["forces"][pad], dt),
+            jnp.asarray(host["points"][pad, :c], dt),
+            jnp.asarray(host["forces"][pad, :c], dt),
             jnp.asarray(mask),
             jnp.asarray(self.thickness, dt),
             jnp.asarray(self.poisson_ratio, dt),
