@@ -68,7 +68,7 @@ def _pressed_disc(force, rotation=0.0):
     return state, params, grid
 
 
-def _dsm(params, grid):
+def _dsm(params, grid, **kw):
     eps = calibrate_eps(CFG.target_force, CFG.disc_radius, thickness=CFG.thickness)
     return DsmBreakage(
         params,
@@ -79,6 +79,7 @@ def _dsm(params, grid):
         n_points=CFG.n_points,
         batch_size=1,
         mean_initial_mass=1.0,
+        **kw,
     )
 
 
@@ -89,16 +90,21 @@ def quick_run():
 
 def test_screening_and_criterion_bracket_the_critical_load(quick_run):
     f_c = CFG.target_force
-    state, params, grid = _pressed_disc(0.4 * f_c)
-    dsm = _dsm(params, grid)
+    state, params, grid = _pressed_disc(0.3 * f_c)
+    dsm = _dsm(params, grid, screen="force")
     tab = dsm._table(state)
     assert int(tab["n_neighbours"][0]) == 2
-    assert float(tab["max_force"][0]) == pytest.approx(0.4 * f_c, rel=1e-9)
+    assert float(tab["max_force"][0]) == pytest.approx(0.3 * f_c, rel=1e-9)
     area = float(state.particles.mass[0]) / CFG.areal_density
     f_eq = critical_load(dsm.eps, math.sqrt(area / math.pi), CFG.thickness)
     assert float(tab["critical_load"][0]) == pytest.approx(f_eq, rel=1e-12)
     assert not bool(tab["flag"][0])  # below screen_fraction x F_c: no BEM
     assert dsm.check(state) == [] and dsm.n_checked == 0
+    # the psi bound of the disc at 0.3 F_c is below eps too (about 2.6 x 0.3 eps)
+    bound = _dsm(params, grid)
+    assert bound.screen == "bound"
+    assert bound.check(state) == [] and bound.n_checked == 0
+    dsm = bound
     uid = int(state.particles.uid[0])
     for ratio, breaks in ((0.99, False), (1.01, True)):
         state, *_ = _pressed_disc(ratio * f_c)
