@@ -9,10 +9,12 @@ tested against the other core polygon. Its closest point on that polygon is eith
 edge (vertex-edge contact, normal = the edge's outward normal, so a vertex that has crossed
 the core edge still gets a restoring force) or a vertex (vertex-vertex contact, normal along
 the two vertices). Taking the closest feature, not every edge in range, avoids the 4x
-stiffness of coincident corners (PHYSICS §D pitfall). A vertex-vertex contact is kept only
-when the two vertices are each other's closest feature and only in the direction i -> j, so it
-is counted once. Both directions are tested, so a flat edge-edge contact gives two contacts
-(one vertex of each at the ends of the overlap), as in the Minkowski-sum picture.
+stiffness of coincident corners (PHYSICS §D pitfall). Both directions are tested and every
+vertex keeps its contact, weighted by :func:`corner_weight` so that two corners that meet
+count as one contact without a jump in the energy (counting a vertex-vertex pair once by a
+rule switched between one and two contacts at a finite overlap); a flat edge-edge contact
+gives two contacts (one vertex of each at the ends of the overlap), as in the Minkowski-sum
+picture. The elastic part of the law is the gradient of ``w (K_n delta^2 + K_t xi^2) / 2``.
 
 Law (paper 002 Eq. 6-10): ``F_n = K_n delta - G_n m_e v_n`` (clamped >= 0: contacts do not
 pull), ``F_t = -K_t xi - G_t m_e v_t`` capped at ``mu F_n`` (Cundall-Strack); the spring ``xi``
@@ -69,7 +71,7 @@ def closest_features(va: Array, na: Array, vb: Array, nb: Array):
     """
     na, nb = jnp.asarray(na), jnp.asarray(nb)
     frames = _frames_soa(vb[..., 0], vb[..., 1], nb)
-    gap, normal, point, vertex, valid = _closest_soa(
+    gap, normal, point, vertex, valid, *_ = _closest_soa(
         va[..., 0], va[..., 1], na, vb[..., 0], vb[..., 1], nb, frames
     )
     return gap, jnp.stack(normal, axis=-1), jnp.stack(point, axis=-1), vertex, valid
@@ -211,7 +213,11 @@ def _closest_soa(ax, ay, na, bx, by, nb, frames):
     nxt = jnp.where(best + 1 < nb_, best + 1, 0)
     vertex = jnp.where(interior, -1, jnp.where(at_start, best, nxt))
     valid = k < na[..., None]
-    return gap, normal, point, vertex, valid
+    # distance along the edge to its nearer end, and d(that distance) / d(vertex position)
+    near_start = s < lb - s
+    s_end = jnp.where(interior, jnp.where(near_start, s, lb - s), 0.0)
+    sign = jnp.where(near_start, 1.0, -1.0)
+    return gap, normal, point, vertex, valid, s_end, (sign * tbx, sign * tby)
 
 
 def _frames_soa(wx, wy, n_verts):
@@ -242,25 +248,58 @@ def _materialise(arrays: tuple) -> tuple:
 
 def _pair_geometry_soa(wx, wy, nv, frames, i, j):
     """Both directions for pairs (i, j): i's vertices on j, then j's on i, stacked on a
-    direction axis ``[C, 2, V]``; vertex-vertex contacts kept once (mutual, direction 0)."""
+    direction axis ``[C, 2, V]``. Every vertex keeps its closest-feature contact in both
+    directions; the corner weights of :func:`corner_weight` keep the sum at one contact
+    where two corners meet. Returns gap, normal, closest point, real-slot mask, whether the
+    closest point is inside an edge, the distance along that edge to its nearer end and the
+    unit vector along which that distance grows with the vertex position."""
     wx, wy, frames = _materialise((wx, wy) + tuple(frames))
     fi = tuple(f[i] for f in frames)
     fj = tuple(f[j] for f in frames)
     xi_, yi_, ni = wx[i], wy[i], nv[i]
     xj_, yj_, nj = wx[j], wy[j], nv[j]
-    g0, n0, q0, vx0, ok0 = _closest_soa(xi_, yi_, ni, xj_, yj_, nj, fj)
-    g1, n1, q1, vx1, ok1 = _closest_soa(xj_, yj_, nj, xi_, yi_, ni, fi)
-    idx = jnp.arange(wx.shape[-1])
-    back = jnp.take_along_axis(vx1, jnp.clip(vx0, 0), axis=-1)
-    keep0 = ok0 & ((vx0 < 0) | (back == idx))
-    keep1 = ok1 & (vx1 < 0)
+    g0, n0, q0, vx0, ok0, s0, d0 = _closest_soa(xi_, yi_, ni, xj_, yj_, nj, fj)
+    g1, n1, q1, vx1, ok1, s1, d1 = _closest_soa(xj_, yj_, nj, xi_, yi_, ni, fi)
     st = lambda a, b: jnp.stack([a, b], axis=1)
     return (
         st(g0, g1),
         (st(n0[0], n1[0]), st(n0[1], n1[1])),
         (st(q0[0], q1[0]), st(q0[1], q1[1])),
-        st(keep0, keep1),
+        st(ok0, ok1),
+        st(vx0 < 0, vx1 < 0),
+        st(s0, s1),
+        (st(d0[0], d1[0]), st(d0[1], d1[1])),
     )
+
+
+def corner_weight(interior: Array, s_end: Array, overlap: Array, r_sum: Array):
+    """Weight of one vertex contact, and its derivatives (``w``, ``dw/ds``, ``dw/ddelta``).
+
+    Every vertex of both bodies keeps its contact with the other core (closest feature).
+    Where two corners meet, the vertex of each sees the other body: counted in full both
+    would double the stiffness, and counting the pair once (the earlier rule) switches
+    between one and two contacts at a finite overlap, an energy jump of ``K_n delta^2 / 2``
+    each time two corners slide past each other. Here a vertex-vertex contact weighs 1/2
+    (its partner, the other vertex, weighs 1/2 too) and a vertex-edge contact weighs
+    ``1/2 + S(s / beta) / 2``, ``S`` the C1 smoothstep, ``s`` the distance of the contact
+    along the edge to its nearer end, ``beta = sqrt(2 R delta - delta^2)`` (``R`` the sum
+    of the radii): 1/2 at the edge's end (continuous with the vertex-vertex weight) and 1
+    beyond ``beta``, the distance beyond which the edge's end vertex, at the same height,
+    no longer overlaps. A contact's energy is ``w (K_n delta^2 + K_t |xi|^2) / 2``; the
+    forces include its gradient through ``w`` (so the law stays conservative) and the total
+    stiffness where two corners meet is 1-1.15 contacts.
+    """
+    beta2 = jnp.maximum(2.0 * r_sum * overlap - overlap * overlap, 0.0)
+    ok = interior & (beta2 > 0)
+    beta = jnp.sqrt(jnp.where(ok, beta2, 1.0))
+    t = jnp.where(ok, s_end / beta, 1.0)
+    tc = jnp.clip(t, 0.0, 1.0)
+    smooth = tc * tc * (3.0 - 2.0 * tc)
+    slope = jnp.where(t < 1.0, 6.0 * tc * (1.0 - tc), 0.0)
+    w = jnp.where(interior, 0.5 + 0.5 * jnp.where(ok, smooth, 1.0), 0.5)
+    dw_ds = jnp.where(ok, 0.5 * slope / beta, 0.0)
+    dw_dd = jnp.where(ok, -0.5 * slope * t * (r_sum - overlap) / beta2, 0.0)
+    return w, dw_ds, dw_dd
 
 
 def _soa_world(p: Particles):
@@ -324,7 +363,8 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
     pair_ok = pairs[:, 0] < n_p
     i = jnp.where(pair_ok, pairs[:, 0], 0)
     j = jnp.where(pair_ok, pairs[:, 1], 0)
-    gap, (nx, ny), (qx, qy), keep = _pair_geometry_soa(wx, wy, p.n_verts, frames, i, j)
+    geo_ = _pair_geometry_soa(wx, wy, p.n_verts, frames, i, j)
+    gap, (nx, ny), (qx, qy), keep, interior, s_end, (ex, ey) = geo_
     owner = jnp.stack([i, j], axis=1)  # [c, 2] body whose vertex is tested
     other = jnp.stack([j, i], axis=1)
     overlap = (p.radius[owner] + p.radius[other])[..., None] - gap
@@ -377,15 +417,34 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
         v_damp=v_damp,
         energy=True,
     )
+    # corner weights (corner_weight) and the forces of their gradient: the energy
+    # w e, e = (K_n delta^2 + K_t |xi|^2) / 2, depends on the vertex's position in the other
+    # body's frame through delta (along n) and through s (along e_dir), so the owner gets
+    # (w_d e) n - (w_s e) e_dir, applied at its vertex, and the other body the opposite
+    r_sum = p.radius[own] + r_oth
+    w, w_s, w_d = corner_weight(take(interior), take(s_end), ov, r_sum)
+    w = jnp.where(ok, w, 0.0)
+    e = 0.5 * (
+        params.normal_stiffness * ov * ov + params.tangential_stiffness * (xx * xx + xy * xy)
+    )
+    e = jnp.where(ok, e, 0.0)
+    gx = w_d * e * cnx - w_s * e * take(ex)
+    gy = w_d * e * cny - w_s * e * take(ey)
+    fx, fy, fn = w * fx + gx, w * fy + gy, w * fn
+    terms = {k: w * v for k, v in terms.items()}
+    # the along-edge part acts at the vertex, (r_own - delta / 2) n from the contact point
+    lever = p.radius[own] - 0.5 * ov
+    tx_, ty_ = -w_s * e * take(ex), -w_s * e * take(ey)
+    couple = lever * (cnx * ty_ - cny * tx_)
     dtype = fx.dtype
     force = jnp.stack([fx, fy], axis=-1)
     f = jnp.zeros((n_p, 2), dtype).at[own].add(force).at[oth].add(-force)
     t = (
         jnp.zeros((n_p,), dtype)
         .at[own]
-        .add(rox * fy - roy * fx)
+        .add(rox * fy - roy * fx + couple)
         .at[oth]
-        .add(-(rtx * fy - rty * fx))
+        .add(-(rtx * fy - rty * fx) - couple)
     )
     xi_new = jnp.zeros_like(flat_xi).at[:, slot].set(jnp.stack([xx, xy]), mode="drop")
 

@@ -75,6 +75,7 @@ class Config:
     records_per_segment: int = 10
     n_elements: int = 64
     n_points: int = 200
+    screen: str = "bound"  # DSM screening: bound (proven) or force (heuristic)
     erosion: str = "local"  # fragments' erosion: local, local-axis, uniform, none
     small_pieces: str = "merge"  # pieces below min_fragment_fraction: merge or fines
     conserve_mass: bool = False  # density compensation of the erosion
