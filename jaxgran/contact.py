@@ -115,8 +115,9 @@ def contact_law(
     tangential dashpots, where ``f_d`` is the dashpot's share of the applied force: normal,
     the force minus its spring part, so a force clamped at zero counts too; tangential,
     while the contact sticks) and ``slip`` (while it slips, the dashpot's share of the capped
-    force plus ``K_t |xi_new| |xi_trial - xi_new|``, the spring's force at the cap times the
-    slip displacement).
+    force plus what the spring loses beyond the work of its force,
+    ``K_t (|xi_old|^2 - |xi_new|^2) / 2 + K_t xi_new . (xi_trial - xi_old)``, which in
+    steady sliding is the force at the cap times the slip displacement).
     """
     nx, ny = normal
     vdx, vdy = v_rel if v_damp is None else v_damp
@@ -165,9 +166,16 @@ def contact_law(
     f_tdy = -shrink * damping_t * m_eff * vtdy
     d_tangent = -(f_tdx * vtdx + f_tdy * vtdy) * dt
     # slipping, the force is mu F_n whatever its parts, so all of the tangential loss is
-    # friction: the dashpot's share, and the spring's force at the cap times the slip
-    # displacement (>= 0, exact for steady sliding, right for a spring reversing in a step)
-    d_slip = d_tangent + stiffness_t * _norm(xx, xy) * _norm(trial[0] - xx, trial[1] - xy)
+    # friction: the dashpot's share, and what the spring loses beyond the work of its force,
+    # K_t (|xi_old|^2 - |xi_new|^2) / 2 + K_t xi_new . (xi_trial - xi_old) (>= 0; xi_old the
+    # spring turned into the current tangent plane). In steady sliding that is the force at
+    # the cap times the slip displacement; where the cap falls (a contact unloading, as
+    # every contact with friction does before it opens) the force at the cap times the slip
+    # displacement booked only part of the spring energy released, and the rest went
+    # missing from the balance
+    d_slip = d_tangent + stiffness_t * (
+        0.5 * (ox * ox + oy * oy - xx * xx - xy * xy) + xx * (trial[0] - ox) + xy * (trial[1] - oy)
+    )
     terms = {
         "elastic": jnp.where(active, elastic, 0.0),
         "dashpot": jnp.where(active, d_normal + jnp.where(slip, 0.0, d_tangent), 0.0),

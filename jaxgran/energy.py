@@ -10,8 +10,10 @@ Attach a ledger (:func:`attach`) to a state and every step accumulates, in
   a scene's control applies as velocity kicks (their kinetic-energy change);
 - **dashpot** and **friction**: per contact and step (:func:`jaxgran.contact.contact_law`),
   the dashpot force (applied force minus its spring part, so a normal force clamped at zero
-  counts too) times the relative velocity the dashpots use, and the Coulomb slip, the mean
-  spring force times the slip displacement ``xi_trial - xi_new``;
+  counts too) times the relative velocity the dashpots use, and the Coulomb slip, what
+  the tangential spring loses beyond the work of its force in a slipping step (in steady
+  sliding the force at the cap times the slip displacement; also the spring energy a
+  falling cap releases);
 - **damping**: the kinetic energy a scene's background velocity damping removes;
 - **breakage**: the elastic energy a bond loses when it softens or breaks (the step
   updates health before it applies the bond forces, so the loss is exact at the drifted
