@@ -579,12 +579,11 @@ class DsmBreakage:
         n_p = p.pos.shape[0]
         self._fit_elements(state)
         want = np.where(np.asarray(p.active), np.asarray(p.uid), -1).astype(np.int64)
-        missing = [
-            s for s in np.flatnonzero(want >= 0).tolist() if int(want[s]) not in self._bound_rows
-        ]
+        known = np.fromiter(self._bound_rows, np.int64, len(self._bound_rows))
+        missing = np.flatnonzero((want >= 0) & ~np.isin(want, known))
         bs = self.batch_size
-        for start in range(0, len(missing), bs):
-            chunk = np.asarray(missing[start : start + bs])
+        for start in range(0, missing.size, bs):
+            chunk = missing[start : start + bs]
             self._operators(state, np.concatenate([chunk, np.full(bs - chunk.size, chunk[0])]))
         if self._bound_stack is None or self._bound_uid.shape[0] != n_p:
             row = next(iter(self._bound_rows.values()))
