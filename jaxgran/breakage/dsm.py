@@ -580,6 +580,9 @@ class DsmBreakage:
         self._fit_elements(state)
         want = np.where(np.asarray(p.active), np.asarray(p.uid), -1).astype(np.int64)
         known = np.fromiter(self._bound_rows, np.int64, len(self._bound_rows))
+        # particles that left (fines, merged or replaced) never come back: drop their rows
+        for u in known[~np.isin(known, want)].tolist():
+            del self._bound_rows[u]
         missing = np.flatnonzero((want >= 0) & ~np.isin(want, known))
         bs = self.batch_size
         for start in range(0, missing.size, bs):
