@@ -422,6 +422,80 @@ def principal_axis_angle(points, weights=None, reference=(0.0, 1.0)) -> dict[str
     return {"angle_deg": angle, "elongation": ratio, "centre": c.tolist()}
 
 
+def bridge_edges(i, j, n: int) -> np.ndarray:
+    """Which edges of the undirected graph on ``n`` nodes with edges ``(i[k], j[k])`` are
+    bridges (removing one disconnects its component), ``[E]`` bool.
+
+    Iterative depth-first search with low links (Tarjan 1974), parallel edges allowed (two
+    parallel edges are never bridges: only the edge the search came by is skipped)."""
+    i = np.asarray(i, dtype=np.int64).ravel()
+    j = np.asarray(j, dtype=np.int64).ravel()
+    if i.shape != j.shape:
+        raise ValueError(f"i and j must have one entry per edge, got {i.shape} and {j.shape}")
+    if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
+        raise ValueError(f"edge ends must lie in [0, {n})")
+    e = i.size
+    ends = np.concatenate([j, i])  # half-edge h (h < e: i -> j, else j -> i) ends here
+    start = np.concatenate([i, j])
+    order = np.argsort(start, kind="stable")
+    first = np.searchsorted(start[order], np.arange(n + 1))
+    disc = np.full(n, -1, dtype=np.int64)
+    low = np.zeros(n, dtype=np.int64)
+    bridge = np.zeros(e, dtype=bool)
+    clock = 0
+    for root in range(n):
+        if disc[root] >= 0:
+            continue
+        disc[root] = low[root] = clock
+        clock += 1
+        stack = [(root, -1, first[root])]  # node, edge it was reached by, next half-edge
+        while stack:
+            v, via, nxt = stack[-1]
+            if nxt < first[v + 1]:
+                stack[-1] = (v, via, nxt + 1)
+                h = order[nxt]
+                edge = h % e if e else 0
+                if edge == via:
+                    continue
+                w = ends[h]
+                if disc[w] < 0:
+                    disc[w] = low[w] = clock
+                    clock += 1
+                    stack.append((w, edge, first[w]))
+                else:
+                    low[v] = min(low[v], disc[w])
+                continue
+            stack.pop()
+            if stack:
+                u = stack[-1][0]
+                low[u] = min(low[u], low[v])
+                if low[v] > disc[u]:
+                    bridge[via] = True
+    return bridge
+
+
+def fragments(i, j, n: int, *, split_bridges: bool = False) -> list[np.ndarray]:
+    """Node index sets of the connected components of the graph ``(i[k], j[k])`` on ``n``
+    nodes (e.g. particles linked by intact bonds), largest first.
+
+    With ``split_bridges`` the bridges are removed first: the components are then the
+    2-edge-connected ones, so that two pieces joined by nothing but a chain of single links
+    (a thread of bonded grains left between the two halves of a split disc) count as two
+    fragments, and the grains of the chain as pieces of their own."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    i = np.asarray(i, dtype=np.int64).ravel()
+    j = np.asarray(j, dtype=np.int64).ravel()
+    if split_bridges:
+        keep = ~bridge_edges(i, j, n)
+        i, j = i[keep], j[keep]
+    g = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    _, label = connected_components(g, directed=False)
+    groups = [np.nonzero(label == k)[0] for k in np.unique(label)]
+    return sorted(groups, key=len, reverse=True)
+
+
 def broken_bond_points(state) -> tuple[np.ndarray, np.ndarray]:
     """World positions (m) of the common points of the broken bonds ``[n, 2]`` (midpoint
     of the two bodies' copies) and their break times (s)."""

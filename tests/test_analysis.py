@@ -226,3 +226,43 @@ def test_principal_axis_angle_of_a_crack():
 def test_summary_stats():
     out = an.summary_stats([{"a": 1.0, "b": "x"}, {"a": 3.0, "c": True}])
     assert out == {"a": {"mean": 2.0, "std": pytest.approx(math.sqrt(2.0)), "n": 2}}
+
+
+def _n_components(i, j, n):
+    return len(an.fragments(i, j, n))
+
+
+def test_bridges_are_the_edges_whose_removal_disconnects_the_graph():
+    """Against the definition, edge by edge, on random sparse multigraphs (parallel edges,
+    isolated nodes, several components)."""
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        n = int(rng.integers(1, 25))
+        e = int(rng.integers(0, 2 * n))
+        i = rng.integers(0, n, e)
+        j = (i + rng.integers(1, n, e)) % n if n > 1 else i  # no self loops
+        if n == 1:
+            i = j = np.zeros(0, int)
+        got = an.bridge_edges(i, j, n)
+        base = _n_components(i, j, n)
+        for k in range(len(i)):
+            keep = np.arange(len(i)) != k
+            assert got[k] == (_n_components(i[keep], j[keep], n) > base)
+
+
+def test_two_blocks_joined_by_a_thread_are_two_fragments_only_with_split_bridges():
+    """Two 4-cliques joined by a path through two extra nodes: one component by
+    connectivity, the two cliques (and two singletons) once the bridges are removed; a
+    second path between them makes the whole graph one 2-edge-connected fragment."""
+    a = [(p, q) for p in range(4) for q in range(p + 1, 4)]
+    b = [(p + 4, q + 4) for p, q in a]
+    thread = [(0, 8), (8, 9), (9, 4)]
+    i, j = np.array(a + b + thread).T
+    assert [len(f) for f in an.fragments(i, j, 10)] == [10]
+    parts = an.fragments(i, j, 10, split_bridges=True)
+    assert [len(f) for f in parts] == [4, 4, 1, 1]
+    assert {tuple(parts[0]), tuple(parts[1])} == {(0, 1, 2, 3), (4, 5, 6, 7)}
+    i2, j2 = np.array(a + b + thread + [(1, 5)]).T
+    assert [len(f) for f in an.fragments(i2, j2, 10, split_bridges=True)] == [10]
+    with pytest.raises(ValueError, match="edge ends"):
+        an.bridge_edges([0], [5], 3)

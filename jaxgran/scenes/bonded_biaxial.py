@@ -72,7 +72,9 @@ class Config:
     strain_rate: float = 20.0  # 1/s, axial (both walls together / H)
     max_strain: float = 0.04  # axial strain at the end of shearing
     residual_fraction: float = 0.2  # last part of the shearing that gives the residual q
-    drop_fraction: float = 0.5  # unconfined / tension stop below this x the peak stress
+    # unconfined / tension stop below this x the peak stress: soon after a brittle failure,
+    # before the fragments it throws out (tens of m/s) leave the grid
+    drop_fraction: float = 0.75
     iso_tolerance: float = 0.01  # isotropic stage ends when every wall is within this of p
     iso_max_time: float = 2.0e-3  # s
     servo_response: float = 0.15  # servo time constant in wave transit times across the block

@@ -19,8 +19,9 @@ element failure and at ``compare_fraction`` of the peak; the error in the middle
 velocity field at the moment of breakage (the first record after the peak where the force
 has dropped below ``break_fraction x F_max``); compression and tension force chains before
 the peak; the split angle (the line between the two largest fragments' centroids, from the
-horizontal, i.e. the fracture plane's angle from the loading axis; and the principal axis of
-the tension failures); where the shear failures are (share within ``D / 6`` of a plate
+horizontal, i.e. the fracture plane's angle from the loading axis; fragments are held
+together by more than one chain of bonds, so a thread of bonded grains left between two
+halves does not join them; and the principal axis of the tension failures); where the shear failures are (share within ``D / 6`` of a plate
 against the share of all interfaces there) and the cone-core half-angle (median angle from
 the loading axis of the shear failures seen from the nearer plate contact). Speed: wall time
 and particle-steps/s of the compiled segments, for the disc and the Voronoi specimen.
@@ -162,21 +163,16 @@ def simulate_test(cfg: Config, *, progress: bool = False, setup: si.Setup | None
     return res, setup
 
 
-def _fragments(state) -> list[np.ndarray]:
-    """Particle index sets of the fragments (connected by bonds with a bonded element),
-    largest first."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
+def _fragments(state, split_bridges: bool = True) -> list[np.ndarray]:
+    """Particle index sets of the fragments, largest first: particles linked by bonds with
+    a bonded element, and with ``split_bridges`` (default) not through a single chain of
+    bonds only (:func:`jaxgran.analysis.fragments`: the two halves of a split disc that a
+    thread of bonded grains still joins are two fragments)."""
     b = state.bonds
-    act = np.asarray(state.particles.active)
-    n = int(act.sum())
+    n = int(np.asarray(state.particles.active).sum())
     keep = np.asarray(b.intact) & np.asarray(b.i < b.j)
     i, j = np.asarray(b.i)[keep], np.asarray(b.j)[keep]
-    g = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    _, label = connected_components(g, directed=False)
-    groups = [np.nonzero(label == k)[0] for k in np.unique(label)]
-    return sorted(groups, key=len, reverse=True)
+    return an.fragments(i, j, n, split_bridges=split_bridges)
 
 
 def axis_profile(probe: dict, cfg: Config) -> dict:
@@ -231,6 +227,9 @@ def measure(res, setup: si.Setup, cfg: Config) -> dict:
             math.degrees(math.atan2(abs(d[1]), abs(d[0])))
         )
         out["fragment_sizes"] = [int(len(f)) for f in frags[:4]]
+    out["bond_connected_fragment_sizes"] = [
+        int(len(f)) for f in _fragments(res.state, split_bridges=False)[:4]
+    ]
     tens = el["mode"] == itf.MODE_TENSION
     if tens.sum() >= 3:
         ax = an.principal_axis_angle(el["pos"][tens])
