@@ -21,9 +21,10 @@ has dropped below ``break_fraction x F_max``); compression and tension force cha
 the peak; the split angle (the line between the two largest fragments' centroids, from the
 horizontal, i.e. the fracture plane's angle from the loading axis; fragments are held
 together by more than one chain of bonds, so a thread of bonded grains left between two
-halves does not join them; and the principal axis of the tension failures); where the shear failures are (share within ``D / 6`` of a plate
-against the share of all interfaces there) and the cone-core half-angle (median angle from
-the loading axis of the shear failures seen from the nearer plate contact). Speed: wall time
+halves does not join them; and the principal axis of the tension failures); where the
+shear failures are (share within ``D / 6`` of a plate against the share of all interfaces
+there) and the cone-core half-angle (median angle from the loading axis of the shear
+failures seen from the nearer plate contact). Speed: wall time
 and particle-steps/s of the compiled segments, for the disc and the Voronoi specimen.
 """
 
