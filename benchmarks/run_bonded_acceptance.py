@@ -8,6 +8,7 @@ so the analysis and the figures can be redone without simulating (``--analyse-on
     python benchmarks/run_bonded_acceptance.py cantilever   # deflection vs Euler-Bernoulli
     python benchmarks/run_bonded_acceptance.py brazilian    # sigma_t over 8 seeds, bursts
     python benchmarks/run_bonded_acceptance.py sweep        # sigma_t/B_n, S/K_n calibration
+    python benchmarks/run_bonded_acceptance.py p-drift --seeds 2 --pressures 100e6  # p vs rate
 
 Results go to ``<out>/<part>.json`` (default ``benchmarks/bonded_acceptance``), figures to
 ``docs/`` (``hoek_brown.png``, ``cantilever.png``, ``bursts.png``, ``bonded_sweeps.png``).
@@ -419,12 +420,49 @@ def sweep(args) -> dict:
     return out
 
 
+# ------------------------------------------------------------------------------ p drift
+
+
+def p_drift(args) -> dict:
+    """How far p strays from its target up to the peak against the strain rate, for one
+    seed (``--seeds`` is the seed here) and the first of ``--pressures``: does a slower,
+    more quasi-static shearing hold p closer (``--rates``)?"""
+    from jaxgran.scenes import bonded_biaxial as bx
+
+    seed, p = int(args.seeds), _floats(args.pressures)[0]
+    path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}.json"
+    rows = json.loads(path.read_text())["runs"] if path.exists() else []
+    done = {r["strain_rate"] for r in rows}
+    for rate in _floats(args.rates):
+        if rate in done or args.analyse_only:
+            continue
+        cfg = dataclasses.replace(
+            bx.Config(), n_cells=args.cells, strain_rate=rate, max_strain=args.max_strain,
+            record_every=args.record_every,
+        )  # fmt: skip
+        t0 = time.perf_counter()
+        shear, iso, setup, _ = bx.isotropic_then_shear(cfg, [seed], (p,))
+        m = bx.measure_shear(shear.realisation(0), p, cfg.thickness, cfg.residual_fraction)
+        keys = ("q_peak_Pa", "p_at_peak_Pa", "axial_strain_at_peak", "true_peak")
+        rows.append(
+            {"strain_rate": rate, "wall_time_s": time.perf_counter() - t0,
+             "steps": shear.steps + iso.steps,
+             "p_max_relative_deviation_to_peak": m["p_max_relative_deviation_to_peak"],
+             **{k: m[k] for k in keys}}
+        )  # fmt: skip
+        print(json.dumps(rows[-1], default=float), flush=True)
+        _dump(path, {"seed": seed, "p_target_Pa": p, "runs": rows})
+    out = {"seed": seed, "p_target_Pa": p, "runs": rows}
+    _dump(path, out)
+    return out
+
+
 # ------------------------------------------------------------------------------ main
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("part", choices=["biaxial", "cantilever", "brazilian", "sweep"])
+    ap.add_argument("part", choices=["biaxial", "cantilever", "brazilian", "sweep", "p-drift"])
     ap.add_argument("--cases", default="", help="cantilever cases (default: all)")
     ap.add_argument("--sweep-cells", type=int, default=150)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "bonded_acceptance"))
@@ -435,11 +473,18 @@ def main() -> None:
     ap.add_argument("--strain-rate", type=float, default=10.0)
     ap.add_argument("--max-strain", type=float, default=0.03)
     ap.add_argument("--record-every", type=int, default=50)
+    ap.add_argument("--rates", default="10,5", help="p-drift: strain rates (1/s)")
     args = ap.parse_args()
     args.cells = args.cells or {"brazilian": 500}.get(args.part, 200)
     _x64()
     sys.path.insert(0, str(ROOT))
-    parts = {"biaxial": biaxial, "cantilever": cantilever, "brazilian": brazilian, "sweep": sweep}
+    parts = {
+        "biaxial": biaxial,
+        "cantilever": cantilever,
+        "brazilian": brazilian,
+        "sweep": sweep,
+        "p-drift": p_drift,
+    }
     out = parts[args.part](args)
     keys = [k for k in out if k not in ("runs", "config")]
     print(json.dumps({k: out[k] for k in keys}, indent=1, default=float))
