@@ -129,13 +129,18 @@ def _probe_class():
             ke0 = float(kinetic_energy(state))
             ov0 = np.asarray(max_overlap(state))
             f0 = np.linalg.norm(np.asarray(state.particles.force), axis=1)
-            dry = {m: self._replace(state, decisions, m)[1] for m in MODES}
+            # the same decisions replaced in every mode, by parent slot; a mode may merge
+            # every piece back ("suppressed": no mass lost to compare), which reads NaN
+            dry = {
+                m: {int(e["parent_slot"]): e for e in self._replace(state, decisions, m)[1]}
+                for m in MODES
+            }
             n0 = len(self.events)
             new = super().apply(state, decisions)  # the scene's path, erosion=cfg.erosion
             ke1 = float(kinetic_energy(new))
             ov1 = np.asarray(max_overlap(new))
             f1 = np.linalg.norm(np.asarray(new.particles.force), axis=1)
-            for j, ev in enumerate(self.events[n0:]):
+            for ev in self.events[n0:]:
                 k = int(ev["parent_slot"])
                 slots = np.asarray(ev["fragment_slots"], int)
                 ev["probe"] = {
@@ -146,12 +151,18 @@ def _probe_class():
                     "fragment_max_overlap_m": float(ov1[slots].max()) if slots.size else 0.0,
                     "fragment_max_force_N": float(f1[slots].max()) if slots.size else 0.0,
                     "n_breaking_together": len(decisions),
-                    **{f"dry_mass_lost_{m}": float(dry[m][j]["mass_lost"]) for m in MODES},
-                    **{f"dry_fines_{m}": float(dry[m][j]["fines_mass"]) for m in MODES},
+                    **{f"dry_mass_lost_{m}": _dry(dry[m], k, "mass_lost") for m in MODES},
+                    **{f"dry_fines_{m}": _dry(dry[m], k, "fines_mass") for m in MODES},
                 }
             return new
 
     return _ErosionProbe
+
+
+def _dry(events: dict, slot: int, key: str) -> float:
+    """``key`` of the dry-run event of parent ``slot``; NaN where that mode left it whole."""
+    ev = events.get(slot)
+    return float(ev[key]) if ev is not None and key in ev else float("nan")
 
 
 @contextlib.contextmanager
@@ -558,10 +569,14 @@ def main() -> None:
             f"| {mean(r['wall_time_s'] for r in rs):.0f} |"
         )
     ev_all = [e for r in rows if r["ok"] for e in r["events"]]
+    # events that every mode breaks (a mode may merge all the pieces back: NaN)
+    ev_all = [e for e in ev_all if all(math.isfinite(e[f"dry_mass_lost_{m}"]) for m in MODES)]
     if ev_all:
         lines += [
             "",
-            f"Paired mass loss: for each of the {len(ev_all)} events above, the mass that "
+            f"Paired mass loss: for each of the {len(ev_all)} events above that every mode "
+            "breaks (a mode may merge all the pieces back, leaving the parent whole), the mass "
+            "that "
             "each erosion mode removes from the same parent cut by the same planes at the "
             "same instant (a dry run of `replace_particles`), as a percentage of the parent "
             "mass: lost (fines included) and eroded (lost - fines); and the parent's largest "
