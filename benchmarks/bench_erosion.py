@@ -576,8 +576,7 @@ def main() -> None:
             "",
             f"Paired mass loss: for each of the {len(ev_all)} events above that every mode "
             "breaks (a mode may merge all the pieces back, leaving the parent whole), the mass "
-            "that "
-            "each erosion mode removes from the same parent cut by the same planes at the "
+            "that each erosion mode removes from the same parent cut by the same planes at the "
             "same instant (a dry run of `replace_particles`), as a percentage of the parent "
             "mass: lost (fines included) and eroded (lost - fines); and the parent's largest "
             "overlap before the breakage.",

@@ -8,7 +8,7 @@ so the analysis and the figures can be redone without simulating (``--analyse-on
     python benchmarks/run_bonded_acceptance.py cantilever   # deflection vs Euler-Bernoulli
     python benchmarks/run_bonded_acceptance.py brazilian    # sigma_t over 8 seeds, bursts
     python benchmarks/run_bonded_acceptance.py sweep        # sigma_t/B_n, S/K_n calibration
-    python benchmarks/run_bonded_acceptance.py p-drift --seeds 2 --pressures 100e6  # p vs rate
+    python benchmarks/run_bonded_acceptance.py p-drift --seed 2 --pressures 100e6  # p vs rate
 
 Results go to ``<out>/<part>.json`` (default ``benchmarks/bonded_acceptance``), figures to
 ``docs/`` (``hoek_brown.png``, ``cantilever.png``, ``bursts.png``, ``bonded_sweeps.png``).
@@ -425,11 +425,11 @@ def sweep(args) -> dict:
 
 def p_drift(args) -> dict:
     """How far p strays from its target up to the peak against the strain rate, for one
-    seed (``--seeds`` is the seed here) and the first of ``--pressures``: does a slower,
-    more quasi-static shearing hold p closer (``--rates``)?"""
+    seed (``--seed``) and the first of ``--pressures``: does a slower, more quasi-static
+    shearing hold p closer (``--rates``)?"""
     from jaxgran.scenes import bonded_biaxial as bx
 
-    seed, p = int(args.seeds), _floats(args.pressures)[0]
+    seed, p = int(args.seed), _floats(args.pressures)[0]
     path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}.json"
     rows = json.loads(path.read_text())["runs"] if path.exists() else []
     done = {r["strain_rate"] for r in rows}
@@ -474,6 +474,7 @@ def main() -> None:
     ap.add_argument("--max-strain", type=float, default=0.03)
     ap.add_argument("--record-every", type=int, default=50)
     ap.add_argument("--rates", default="10,5", help="p-drift: strain rates (1/s)")
+    ap.add_argument("--seed", type=int, default=2, help="p-drift: the one seed")
     args = ap.parse_args()
     args.cells = args.cells or {"brazilian": 500}.get(args.part, 200)
     _x64()
