@@ -51,10 +51,16 @@ def main() -> None:
     state, params, grid, cfg = settled_pile(args.cells, args.width, args.cache)
     state, params, grid = (jax.tree_util.tree_map(_to_device, t) for t in (state, params, grid))
     p, thick, nu = state.particles, cfg.thickness, 0.3
-    tab = dsm.contact_table(
-        state, params, jnp.asarray(1.0), jnp.asarray(0.0), jnp.asarray(3.4351),
-        jnp.asarray(thick), 16,
-    )  # fmt: skip
+
+    def table(k):
+        return dsm.contact_table(
+            state, params, jnp.asarray(1.0), jnp.asarray(0.0), jnp.asarray(3.4351),
+            jnp.asarray(thick), k,
+        )  # fmt: skip
+
+    # lists long enough for the particle with most contacts (none is cut)
+    count = int(np.asarray(table(8)["count"]).max())
+    tab = table(max(8, 1 << (count - 1).bit_length()))
     act = np.flatnonzero(np.asarray(p.active))
     cp, cf, cm = (np.asarray(tab[k])[act] for k in ("points", "forces", "mask"))
     ops = bem.build_operators(
