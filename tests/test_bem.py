@@ -685,7 +685,11 @@ def test_screen_matches_thresholding_the_full_field(batch, quantile):
     cand = idx[np.asarray(res.is_candidate)]
     assert set(cand.tolist()) == set(np.flatnonzero(np.asarray(res.bound) >= thr).tolist())
     np.testing.assert_allclose(np.asarray(res.psi), np.asarray(psi)[idx], rtol=1e-12, atol=0)
-    np.testing.assert_allclose(np.asarray(res.sigma), np.asarray(sigma)[idx], rtol=1e-12)
+    # the same field up to rounding: summation order differs between the two paths (and
+    # between CPUs), so components that nearly cancel are compared on the field's scale
+    ref = np.asarray(sigma)[idx]
+    scale = np.abs(ref).max()
+    np.testing.assert_allclose(np.asarray(res.sigma), ref, rtol=1e-12, atol=1e-13 * scale)
 
 
 def test_screen_rejects_bad_threshold(batch):
