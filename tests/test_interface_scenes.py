@@ -29,6 +29,28 @@ def test_scenes_are_registered_with_quick_modes():
         assert cfg.bond == "interface" and dataclasses.replace(cfg, bond="parallel")
 
 
+@pytest.mark.parametrize("seed", [10, 11])
+def test_disc_specimen_is_one_bonded_cluster(seed):
+    """The packings of these seeds leave a few discs bonded to each other but to nothing
+    else, including the disc at a pole (a plate then pushes that loose cluster in without
+    resistance and the specimen is never loaded): the specimen keeps the largest bonded
+    cluster only, so every disc is tied to every other through bonds."""
+    from jaxgran.analysis import fragments
+
+    cfg = dataclasses.replace(pc.Config(), seed=seed)
+    region = ("disc", 0.5 * cfg.diameter, (0.0, 0.0))
+    x, r = si.disc_packing(region, cfg.d_min, cfg.d_max, seed, cfg.solid_fraction)
+    raw = itf.disc_interfaces(x, r, cfg.bond_gap * r.min())["pairs"]
+    clusters = fragments(raw[:, 0], raw[:, 1], len(x))
+    bonded = [c for c in clusters if len(c) > 1]
+    assert len(bonded) >= 2  # the raw packing has a loose cluster
+    spec = si.make_specimen(cfg, region, si.material_from(cfg))
+    pairs = spec.interfaces["pairs"]
+    assert len(fragments(pairs[:, 0], pairs[:, 1], spec.n_particles)) == 1
+    assert spec.n_particles == len(bonded[0])
+    assert len(pairs) == sum(np.isin(raw, bonded[0]).all(axis=1))
+
+
 def test_mohr_envelope_fits_recover_both_shapes():
     s3 = np.array([-2.0, 0.0, 2.0, 5.0, 10.0, 20.0, 40.0]) * 1e6
     c, sb = 12e6, 4e6

@@ -22,10 +22,11 @@ keeps everything and swaps the envelope for the straight line ``c - sigma tan(ph
 **Specimens.** *Discs* (paper 003's elementary balls, diameters ``d_min .. d_max`` =
 2.5-5 mm, uniform): placed at random in the region at solid fraction ``solid_fraction`` and
 pushed apart until no two overlap (host-side relaxation); every pair whose surfaces are
-closer than ``bond_gap`` x the smallest radius is bonded, discs without a bond are dropped,
-and then every radius is reduced by ``clearance`` so that the contact law does not act
-between bonded discs (the interface carries their compression, as in a flat joint) unless
-they are pushed ``2 clearance r`` together. *Voronoi cells*: a tessellation of the same
+closer than ``bond_gap`` x the smallest radius is bonded, the largest bonded cluster is kept
+(discs without a bond and small clusters bonded to nothing else are dropped), and then
+every radius is reduced by ``clearance`` so that the contact law does not act between
+bonded discs (the interface carries their compression, as in a flat joint) unless they are
+pushed ``2 clearance r`` together. *Voronoi cells*: a tessellation of the same
 region with the same number of particles, each cell eroded by ``sphero_fraction x`` the mean
 cell size and swept by ``(1 - clearance)`` of that radius (the same clearance); the shared
 edges are the interfaces.
@@ -258,10 +259,16 @@ def discs_specimen(
     clearance: float = 0.05,
 ) -> Specimen:
     """Bonded disc specimen (module docstring)."""
+    from ..analysis import fragments
+
     x, r = disc_packing(region, d_min, d_max, seed, solid_fraction)
     pairs = itf.disc_interfaces(x, r, bond_gap * r.min())["pairs"]
+    # the specimen is the largest bonded cluster: discs without a bond, and small clusters
+    # bonded to nothing else (loose debris in a pore, which a plate would push in without
+    # resistance), are dropped
     keep = np.zeros(len(x), bool)
-    keep[pairs.ravel()] = True
+    keep[fragments(pairs[:, 0], pairs[:, 1], len(x))[0]] = True
+    pairs = pairs[keep[pairs[:, 0]] & keep[pairs[:, 1]]]
     index = np.cumsum(keep) - 1
     x, r, pairs = x[keep], r[keep] * (1.0 - clearance), index[pairs]
     d = x[pairs[:, 1]] - x[pairs[:, 0]]
