@@ -140,7 +140,7 @@ def biaxial(args) -> dict:
     _dump(Path(args.out) / "biaxial.json", out)
     from jaxgran import plot_bonded
 
-    plot_bonded.hoek_brown_figure(out, DOCS / "hoek_brown.png")
+    plot_bonded.hoek_brown_figure(out, DOCS / args.figure)
     return out
 
 
@@ -213,6 +213,16 @@ CANTILEVER_CASES = {
         "length": 0.45,
         "n_cells": 440,
         "hold_periods": 1.5,
+    },
+    # the same beam with a straight clamp face: the clamp stretch tessellated apart
+    # (bonded_cantilever.Config.clamp = "straight", paper 002's fixed plate)
+    "matched_slender_straight_clamp": {
+        "b_n": 33.0e9,
+        "b_t": 33.0e9,
+        "length": 0.45,
+        "n_cells": 440,
+        "hold_periods": 1.5,
+        "clamp": "straight",
     },
 }
 
@@ -473,6 +483,9 @@ def main() -> None:
     ap.add_argument("--strain-rate", type=float, default=10.0)
     ap.add_argument("--max-strain", type=float, default=0.03)
     ap.add_argument("--record-every", type=int, default=50)
+    ap.add_argument(
+        "--figure", default="hoek_brown.png", help="biaxial: envelope figure's name in docs/"
+    )
     ap.add_argument("--rates", default="10,5", help="p-drift: strain rates (1/s)")
     ap.add_argument("--seed", type=int, default=2, help="p-drift: the one seed")
     args = ap.parse_args()

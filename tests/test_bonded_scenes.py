@@ -228,6 +228,29 @@ def test_euler_bernoulli_cantilever_formula():
     np.testing.assert_allclose(curv, f * (a - x[1:149]) / (e * i), rtol=1e-6)
 
 
+@pytest.mark.parametrize("clamp", ["straight", "cells"])
+def test_cantilever_specimen_tiles_the_beam_and_the_clamp_face(clamp):
+    """Both clamp kinds tile L x s exactly with bonded cells; with ``clamp = "straight"``
+    every bond between a fixed and a free cell lies on the line x = clamp_length and those
+    bonds cover the whole depth once (the straight face of a fixed plate)."""
+    from jaxgran import geometry as geo
+
+    cfg = dataclasses.replace(bc.Config(), **bc.QUICK, clamp=clamp)
+    spec = bc.beam_specimen(cfg, 3, bd.material_from(cfg))
+    area = sum(geo.polygon_area(c) for c in spec.cells)
+    assert area == pytest.approx(cfg.length * cfg.depth, rel=1e-12)
+    fixed = spec.centroids()[:, 0] < cfg.clamp_length
+    assert 0 < fixed.sum() < spec.n_particles
+    face = [(p, q) for i, j, p, q in geo.shared_edges(spec.cells) if fixed[i] != fixed[j]]
+    xs = np.array([[p[0], q[0]] for p, q in face])
+    length = sum(float(np.linalg.norm(q - p)) for p, q in face)
+    if clamp == "straight":
+        np.testing.assert_allclose(xs, cfg.clamp_length, rtol=0, atol=1e-12)
+        assert length == pytest.approx(cfg.depth, rel=1e-9)
+    else:  # a zigzag of cell edges: longer than the depth, off the line
+        assert length > cfg.depth and np.abs(xs - cfg.clamp_length).max() > 1e-4
+
+
 def test_bimodular_flexural_modulus_from_the_section():
     """Pure bending of a rectangular section of a bimodular material: the neutral axis sits
     where the tension and compression forces balance, and M / (kappa I) is E_f."""

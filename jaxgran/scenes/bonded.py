@@ -125,7 +125,9 @@ class Specimen:
         return np.array([geo.polygon_centroid(c) for c in self.cells])
 
 
-def _erode(cells: list[np.ndarray], area: float, material: Material) -> Specimen:
+def specimen_from_cells(cells: list[np.ndarray], area: float, material: Material) -> Specimen:
+    """Specimen of a tessellation ``cells`` (m) covering ``area`` (m^2): each cell eroded by
+    ``sphero_fraction x sqrt(area / n)``."""
     material.check()
     r = material.sphero_fraction * math.sqrt(area / len(cells))
     cores = []
@@ -162,7 +164,7 @@ def disc_specimen(
         n_boundary=n_boundary,
         lloyd_iterations=lloyd_iterations,
     )
-    return _erode(cells, math.pi * diameter**2 / 4, material)
+    return specimen_from_cells(cells, math.pi * diameter**2 / 4, material)
 
 
 def rectangle_specimen(
@@ -179,7 +181,7 @@ def rectangle_specimen(
     cells = geo.voronoi_rectangle(
         width, height, n_cells, seed, origin=origin, lloyd_iterations=lloyd_iterations
     )
-    return _erode(cells, width * height, material)
+    return specimen_from_cells(cells, width * height, material)
 
 
 @dataclasses.dataclass(frozen=True)

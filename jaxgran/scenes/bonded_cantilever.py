@@ -55,7 +55,11 @@ class Config:
     seed: int = 0  # Voronoi seed of realisation 0 (realisation k uses seed + k)
     realisations: int = 1  # K > 1: K beams under jax.vmap, mean +- std reported
     lloyd_iterations: int = 2
-    clamp_length: float = 0.02  # m, fixed cells' centroids within this of the left end
+    clamp_length: float = 0.02  # m, the clamped stretch at the left end
+    # "straight": the clamp [0, clamp_length] and the beam are tessellated apart, so the
+    # clamp face x = clamp_length is a straight line of shared edges (paper 002's fixed
+    # plate); "cells": one tessellation, the cells whose centroids lie in the clamp fixed
+    clamp: str = "cells"
     tip_length: float = 0.02  # m, loaded cells' centroids within this of the right end
     max_bending_stress: float = 10.0e6  # Pa, sets F = sigma T s^2 / (6 a)
     band: float = 0.25  # middle-line cells: |y - s/2| < band x s
@@ -126,6 +130,42 @@ def measure_moduli(cfg: Config, seeds: list[int], *, progress: bool = False) -> 
     return out
 
 
+def beam_specimen(cfg: Config, seed: int, mat) -> bd.Specimen:
+    """The beam's Voronoi specimen (m). With ``clamp = "straight"`` the clamp stretch
+    ``[0, clamp_length]`` and the free beam ``[clamp_length, length]`` are tessellated
+    apart (cells in proportion to their areas, the clamp's listed first), so every free cell
+    at the root meets the clamp along the straight line ``x = clamp_length``; their shared
+    edges (T-junctions included) are bonded like any other. With ``"cells"`` the whole beam
+    is one tessellation and the clamp is the set of cells whose centroids lie in it, so the
+    root is a zigzag of cell edges."""
+    if cfg.clamp == "cells":
+        return bd.rectangle_specimen(
+            cfg.length, cfg.depth, cfg.n_cells, seed, mat, lloyd_iterations=cfg.lloyd_iterations
+        )
+    if cfg.clamp != "straight":
+        raise ValueError(f"clamp must be 'straight' or 'cells', got {cfg.clamp!r}")
+    if not 0.0 < cfg.clamp_length < cfg.length:
+        raise ValueError(
+            f"clamp_length must be in (0, length) = (0, {cfg.length}) m, got {cfg.clamp_length}"
+        )
+    from .. import geometry as geo
+
+    n_clamp = max(2, int(round(cfg.n_cells * cfg.clamp_length / cfg.length)))
+    lloyd = cfg.lloyd_iterations
+    clamp = geo.voronoi_rectangle(
+        cfg.clamp_length, cfg.depth, n_clamp, seed, lloyd_iterations=lloyd
+    )
+    beam = geo.voronoi_rectangle(
+        cfg.length - cfg.clamp_length,
+        cfg.depth,
+        max(1, cfg.n_cells - n_clamp),
+        seed,
+        origin=(cfg.clamp_length, 0.0),
+        lloyd_iterations=lloyd,
+    )
+    return bd.specimen_from_cells(clamp + beam, cfg.length * cfg.depth, mat)
+
+
 @dataclasses.dataclass
 class Setup:
     """Beams of common shapes (one per seed), shared parameters and grid."""
@@ -144,19 +184,14 @@ def build(cfg: Config, seeds: list[int], modulus: float | None = None) -> Setup:
     default the estimate ``K_n / T``, which is some 2.5x too soft for Table 1, so the hold is
     longer and the damping lighter than planned."""
     mat = bd.material_from(cfg)
-    specs = [
-        bd.rectangle_specimen(
-            cfg.length, cfg.depth, cfg.n_cells, s, mat, lloyd_iterations=cfg.lloyd_iterations
-        )
-        for s in seeds
-    ]
+    specs = [beam_specimen(cfg, s, mat) for s in seeds]
     caps = bd.Capacities.covering(specs)
     states, loads, geos = [], [], []
     for spec in specs:
         state = bd.assemble(spec, mat, [], capacities=caps)
         n = spec.n_particles
         pos0 = np.asarray(state.particles.pos)[:n]
-        clamp = pos0[:, 0] < cfg.clamp_length
+        clamp = pos0[:, 0] < cfg.clamp_length  # with a straight clamp: its own cells
         tip = pos0[:, 0] > cfg.length - cfg.tip_length
         if not clamp.any() or not tip.any():
             raise ValueError("no cell in the clamp or tip region; enlarge clamp/tip_length")
