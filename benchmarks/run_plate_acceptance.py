@@ -111,10 +111,19 @@ def summarise(runs: list[dict]) -> dict:
         "shear_concentrated_under_plates": sum(r["shear_concentrated_under_plates"] for r in runs),
         "axis_middle_third_ratio_mean": statistics.mean(ratios) if ratios else None,
         "axis_middle_third_ratio_std": statistics.stdev(ratios) if len(ratios) > 1 else None,
+        # standard error of the mean over the seeds: is the ensemble biased, not just noisy?
+        "axis_middle_third_ratio_sem": (
+            statistics.stdev(ratios) / len(ratios) ** 0.5 if len(ratios) > 1 else None
+        ),
+        "axis_middle_third_ratio_median": statistics.median(ratios) if ratios else None,
         "axis_within_10_percent": sum(abs(x - 1) < 0.10 for x in ratios),
         "force_max_N_mean": statistics.mean(r["force_max_N"] for r in runs),
-        "first_failure_force_over_max_mean": statistics.mean(
-            r["first_failure_force_over_max"] for r in runs
+        # NaN where no element failed before the run stopped
+        "first_failure_force_over_max_mean": float(
+            np.nanmean([r["first_failure_force_over_max"] for r in runs])
+        ),
+        "runs_without_element_failure": sum(
+            not np.isfinite(r["first_failure_force_over_max"]) for r in runs
         ),
         "wall_time_s_median": statistics.median(r["wall_time_s"] for r in runs),
     }
