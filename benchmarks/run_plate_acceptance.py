@@ -6,6 +6,8 @@ on the axis) scatter from draw to draw. This runner repeats the scene for severa
 elementary-disc sizes and reports every run and the summary over seeds:
 
     python benchmarks/run_plate_acceptance.py seeds        # default disc size, --seeds seeds
+    python benchmarks/run_plate_acceptance.py seeds --size "1-2 mm" --name seeds_1-2mm
+    python benchmarks/run_plate_acceptance.py seeds --particles voronoi --name seeds_voronoi
     python benchmarks/run_plate_acceptance.py resolution   # three disc sizes (4 seeds finest)
     python benchmarks/run_plate_acceptance.py speed        # discs (V = 1) vs Voronoi cells
 
@@ -130,8 +132,17 @@ def summarise(runs: list[dict]) -> dict:
 
 
 def seeds(args) -> dict:
-    runs = [one_run(seed=s) for s in range(args.seeds)]
-    return {"runs": runs, "summary": summarise(runs)}
+    over = {"particles": args.particles}
+    if args.size is not None:
+        over["d_min"], over["d_max"] = SIZES[args.size]
+    first = args.first_seed
+    runs = [one_run(seed=s, **over) for s in range(first, first + args.seeds)]
+    return {
+        "size": args.size or "default",
+        "particles": args.particles,
+        "runs": runs,
+        "summary": summarise(runs),
+    }
 
 
 def resolution(args) -> dict:
@@ -199,7 +210,18 @@ def main() -> None:
     ap.add_argument(
         "--finest-seeds", type=int, default=4, help="seeds of the finest size (the dearest)"
     )
+    ap.add_argument(
+        "--size", choices=tuple(SIZES), default=None, help="seeds: elementary disc size"
+    )
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds: the first seed")
+    ap.add_argument(
+        "--particles",
+        choices=("discs", "voronoi"),
+        default="discs",
+        help="seeds: bonded discs, or the same region meshed as Voronoi cells (as many)",
+    )
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "plate_acceptance"))
+    ap.add_argument("--name", default=None, help="output file stem (default: the part)")
     args = ap.parse_args()
     _x64()
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -211,7 +233,7 @@ def main() -> None:
     result["date"] = time.strftime("%Y-%m-%d")
     result["load_average_at_end"] = os.getloadavg()[0]
     result["wall_time_s_total"] = time.perf_counter() - t
-    path = Path(args.out) / f"{args.part}.json"
+    path = Path(args.out) / f"{args.name or args.part}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1, default=float))
     print(f"wrote {path}")
