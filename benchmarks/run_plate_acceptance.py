@@ -149,7 +149,7 @@ def resolution(args) -> dict:
     out = {}
     for k, (name, (d0, d1)) in enumerate(SIZES.items()):
         n = args.seeds if k < len(SIZES) - 1 else min(args.seeds, args.finest_seeds)
-        runs = [one_run(seed=s, d_min=d0, d_max=d1) for s in range(n)]
+        runs = [one_run(seed=s, particles="discs", d_min=d0, d_max=d1) for s in range(n)]
         out[name] = {"runs": runs, "summary": summarise(runs)}
     _figure(out, DOCS / "plate_contact_resolution.png")
     return out

@@ -20,6 +20,7 @@ SCENE = "interface-brazilian"
 
 @dataclasses.dataclass(frozen=True)
 class Config(pc.Config):
+    particles: str = "discs"  # paper 003's elementary balls; the peak force needs no field
     detailed: bool = False
 
 
