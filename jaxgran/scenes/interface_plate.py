@@ -7,7 +7,7 @@ their shared edges (``--set particles=discs`` for a packing of elementary discs 
 paper 003's balls in 2D) by interface bonds (``--set bond=parallel`` for the baseline). The
 default is the mesh because the stress field inside the disc is what this scene measures:
 a packing of discs at solid fraction 0.7 carries the load along its own force chains, and
-its axis stress scatters from 0.2 to 1.7 of the disc solution between packings (0.63 on
+its axis stress scatters from -0.4 to 1.7 of the disc solution between packings (0.63 on
 average over 32 seeds), while the mesh reads 0.96 +- 0.04 (docs/speed_vs_accuracy.md
 section 4); the discs are 2.9x cheaper per step. With the gypsum-like material of
 :mod:`jaxgran.scenes.interface` (plane stress, slab thickness T). Two frictional plates
