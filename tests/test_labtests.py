@@ -144,7 +144,7 @@ def test_gradients_are_finite_with_padding_and_touching_cells(disc):
     assert (~real).any() and real.sum(axis=1)[0] != real.sum(axis=1)[1]
     assert not np.asarray(lab.state.bonds.wall_active).any()
     short = dataclasses.replace(lab, n_segments=1)
-    grad = jax.jit(jax.grad(lambda x: jnp.sum(_means(x, short, ("sigma_t",)))))  # one compile
+    grad = jax.jit(jax.grad(lambda x: jnp.sum(_means(x, short, ("sigma_t",)))))
     assert np.all(np.isfinite(np.asarray(grad(log_p))))
     # a parameter vector with a vanishing friction and equal moduli (touching, degenerate)
     odd = log_p.at[5].set(jnp.log(1e-12))
