@@ -545,6 +545,7 @@ def wall_forces(
     v_rel = rel_vel(p.vel, p.omega)
     v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
     flat_xi = wall_xi.reshape(2, -1)
+    mu_w = jnp.asarray(params.wall_friction)  # scalar, or one per wall [W]
     (fx, fy), (xx, xy), fn, terms = contact_law(
         ov,
         (cnx, cny),
@@ -556,7 +557,7 @@ def wall_forces(
         params.tangential_stiffness,
         params.normal_damping,
         params.tangential_damping,
-        params.wall_friction,
+        mu_w if mu_w.ndim == 0 else mu_w[wi],
         params.dt,
         v_damp=v_damp,
         energy=True,

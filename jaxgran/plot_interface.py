@@ -84,15 +84,18 @@ def plot_cracks(state, elements: dict, path: Path, stages=None) -> Path:
     return _save(fig, path)
 
 
-def plot_mohr(sigma_1, sigma_3, fits: dict, path: Path, title: str = "") -> Path:
+def plot_mohr(sigma_1, sigma_3, fits: dict, path: Path, title: str = "", peaked=None) -> Path:
     """Peak Mohr circles (compression positive, MPa) with the fitted linear and parabolic
-    envelopes (:func:`jaxgran.scenes.interface.mohr_envelope_fits`)."""
+    envelopes (:func:`jaxgran.scenes.interface.mohr_envelope_fits`); circles whose
+    ``peaked`` is False (stress at the strain limit, no peak) are drawn grey and dashed."""
     s1, s3 = np.asarray(sigma_1, float) / 1e6, np.asarray(sigma_3, float) / 1e6
+    peaked = np.ones(s1.size, bool) if peaked is None else np.asarray(peaked, bool)
     fig, ax = plt.subplots(figsize=(7, 4))
     a = np.linspace(0, np.pi, 100)
-    for x1, x3 in zip(s1, s3, strict=True):
+    for x1, x3, pk in zip(s1, s3, peaked, strict=True):
         c, r = 0.5 * (x1 + x3), 0.5 * abs(x1 - x3)
-        ax.plot(c + r * np.cos(a), r * np.sin(a), "k-", lw=0.8)
+        style = {"color": "k", "ls": "-"} if pk else {"color": "0.5", "ls": "--"}
+        ax.plot(c + r * np.cos(a), r * np.sin(a), lw=0.8, **style)
     lo = min(float(s3.min()), -0.1 * float(s1.max()))
     s = np.linspace(lo, float(s1.max()), 200)
     if "linear_cohesion_Pa" in fits:

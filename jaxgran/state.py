@@ -163,7 +163,8 @@ class Params(eqx.Module):
         normal_stiffness: K_n (N/m), paper 000 Table I.
         tangential_stiffness: K_t (N/m).
         friction: particle-particle Coulomb coefficient mu.
-        wall_friction: particle-wall Coulomb coefficient.
+        wall_friction: particle-wall Coulomb coefficient: a scalar, or one per wall ``[W]``
+            (e.g. frictional platens and frictionless side walls of a biaxial cell).
         normal_damping: G_n (1/s), paper 002 Eq. 10: F_v = G_n m_e v_n.
         tangential_damping: G_t (1/s).
         gravity: ``[2]`` (m/s^2).
@@ -194,7 +195,7 @@ def make_params(
     normal_stiffness: float = 6.0e5,
     tangential_stiffness: float = 2.2e4,
     friction: float = 0.74,
-    wall_friction: float | None = None,
+    wall_friction: float | tuple | None = None,
     normal_damping: float = 0.0,
     tangential_damping: float = 0.0,
     gravity: tuple[float, float] = (0.0, -9.81),
@@ -206,7 +207,8 @@ def make_params(
     dtype=None,
 ) -> Params:
     """Build :class:`Params`; defaults are paper 000 Table I (K_n, K_t, mu, Verlet distance,
-    G, nu). ``dt`` should come from :func:`jaxgran.integrate.stable_time_step`."""
+    G, nu). ``dt`` should come from :func:`jaxgran.integrate.stable_time_step`;
+    ``wall_friction`` is ``friction`` where None, or a scalar, or one value per wall."""
     dtype = dtype or jnp.result_type(float)
     checks = {
         "normal_stiffness": normal_stiffness,
@@ -225,12 +227,18 @@ def make_params(
     }.items():
         if not np.isfinite(value) or value < 0:
             raise ValueError(f"{name} must be >= 0 and finite, got {value!r}")
+    mu_w = np.asarray(friction if wall_friction is None else wall_friction, dtype=float)
+    if mu_w.ndim > 1 or not np.all(np.isfinite(mu_w)) or np.any(mu_w < 0):
+        raise ValueError(
+            f"wall_friction must be >= 0 and finite, one value or one per wall, "
+            f"got {wall_friction!r}"
+        )
     f = lambda x: jnp.asarray(x, dtype=dtype)
     return Params(
         normal_stiffness=f(normal_stiffness),
         tangential_stiffness=f(tangential_stiffness),
         friction=f(friction),
-        wall_friction=f(friction if wall_friction is None else wall_friction),
+        wall_friction=f(mu_w),
         normal_damping=f(normal_damping),
         tangential_damping=f(tangential_damping),
         gravity=f(np.asarray(gravity, dtype=float)),

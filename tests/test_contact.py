@@ -221,3 +221,35 @@ def test_contact_energy_is_continuous_and_conservative_where_two_corners_meet(ph
         scale = k_n * 0.3 * r
         np.testing.assert_allclose(f, -np.array(grad), atol=1e-5 * scale)
         assert tq == pytest.approx(-g_rot, abs=1e-5 * scale * 0.01)
+
+
+def test_wall_friction_can_differ_per_wall():
+    """A square pressed into a floor and a side wall and sliding along both: each wall's
+    tangential force is its own mu times its normal force; a scalar mu equals the same mu
+    given per wall."""
+    from jaxgran.contact import wall_forces
+    from jaxgran.state import wall
+
+    sq = geo.regular_polygon(4, 1.0e-3 * np.sqrt(2.0), rotation=np.pi / 4, center=(1.4e-3, 1.3e-3))
+    parts = particles_from_polygons([sq], 1.0e-3, 2500.0, vertex_capacity=4)
+    parts = replace(parts, vel=jnp.asarray([[-0.5, -0.4]]))  # 0.5 mm / step along each wall
+    walls = make_walls([wall((0.0, 0.0), (0.0, 1.0)), wall((0.0, 0.0), (1.0, 0.0))])
+    xi = jnp.zeros((2, 1, 2, 4))
+    out = {}
+    for name, mu in {"per wall": (0.2, 0.6), "scalar": 0.3, "scalar per wall": (0.3, 0.3)}.items():
+        params = make_params(
+            gravity=(0.0, 0.0),
+            normal_stiffness=1.0e6,
+            tangential_stiffness=1.0e6,
+            friction=0.9,
+            wall_friction=mu,
+            dt=1.0e-3,
+        )
+        out[name] = np.asarray(wall_forces(parts, walls, xi, params)[3])
+    f = out["per wall"]  # force on each wall [W, 2]: floor (n = +y), side wall (n = +x)
+    assert f[0, 1] < 0 and f[1, 0] < 0  # pressed into both
+    np.testing.assert_allclose(abs(f[0, 0]), 0.2 * abs(f[0, 1]), rtol=1e-12)
+    np.testing.assert_allclose(abs(f[1, 1]), 0.6 * abs(f[1, 0]), rtol=1e-12)
+    np.testing.assert_array_equal(out["scalar"], out["scalar per wall"])
+    with pytest.raises(ValueError, match="wall_friction"):
+        make_params(wall_friction=(0.2, -0.1))

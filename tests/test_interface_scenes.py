@@ -74,6 +74,29 @@ def test_mohr_envelope_fits_recover_both_shapes():
     assert fits["linear_cohesion_Pa"] == pytest.approx(c, rel=1e-9)
 
 
+def test_confined_run_ends_on_a_sustained_drop_not_on_a_stick_slip_dip():
+    """The biaxial run's stop rule: a dip below the drop fraction that recovers within the
+    post-peak window does not end the run (stick-slip under confinement), a drop that lasts
+    the window does, and no drop counts before an element has failed."""
+    from jaxgran.scenes import interface_compression as ic
+
+    strain = np.linspace(0.0, 0.03, 301)
+    q = np.where(strain < 0.01, 3e9 * strain, 30e6)  # rise to 30 MPa at 1 % ...
+    q = np.where((strain > 0.012) & (strain < 0.014), 10e6, q)  # ... a 0.2 % dip ...
+    q = np.where(strain > 0.02, 5e6, q)  # ... and the collapse at 2 %
+    track = ic.new_drop_track()
+    assert not ic.sustained_drop(track, q, strain, False, 0.7, 0.005)  # nothing failed yet
+    stops = []
+    track = ic.new_drop_track()
+    for k in range(0, strain.size, 10):  # segments of 10 records
+        seg = slice(k, k + 10)
+        if ic.sustained_drop(track, q[seg], strain[seg], True, 0.7, 0.005):
+            stops.append(strain[seg][-1])
+    assert track["best"] == pytest.approx(30e6)
+    assert stops and 0.025 <= stops[0] < 0.0265  # 0.5 % of strain after the collapse
+    assert track["peaked"]
+
+
 @pytest.fixture(scope="module")
 def tension(tmp_path_factory):
     """Quick direct tension with both bond models (one compilation: same shapes)."""

@@ -78,6 +78,7 @@ class Material:
     radius_multiplier: float = 1.5  # lambda: disc interface width 2 lambda min(r)
     damping_ratio: float = 0.3  # element dashpots (zeta)
     contact_friction: float = 0.5  # particle-particle and particle-plate mu
+    wall_friction: float = math.nan  # particle-wall (platen) mu; nan: contact_friction
     restitution: float = 0.3  # contact dashpots
 
     def check(self) -> None:
@@ -86,6 +87,8 @@ class Material:
         for name in ("thickness", "density", "modulus", "stiffness_ratio", "tensile_strength"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"material {name} must be > 0, got {getattr(self, name)}")
+        if not self.wall_friction >= 0 and not math.isnan(self.wall_friction):
+            raise ValueError(f"wall_friction must be >= 0 (or nan), got {self.wall_friction}")
 
     @property
     def contact_stiffness(self) -> float:
@@ -128,6 +131,7 @@ class Common:
     radius_multiplier: float = 1.5
     damping_ratio: float = 0.3
     contact_friction: float = 0.5
+    wall_friction: float = math.nan  # platens / walls (nan: contact_friction)
     restitution: float = 0.3
 
 
@@ -426,7 +430,8 @@ def stable_dt(state: SimState, mat: Material, safety: float = 0.5) -> float:
 
 def make_run_params(state: SimState, mat: Material, dt: float, skin: float):
     """:class:`jaxgran.state.Params` of an interface scene: no gravity, contact law with
-    ``K_n = E_c T``, ``K_t = K_n / stiffness_ratio``, dashpots for ``restitution``."""
+    ``K_n = E_c T``, ``K_t = K_n / stiffness_ratio``, dashpots for ``restitution``; walls
+    have ``wall_friction`` (``contact_friction`` where it is nan)."""
     m = np.asarray(state.particles.mass)[np.asarray(state.particles.active)]
     m_eff = 0.5 * float(np.median(m))
     k_n = mat.contact_stiffness
@@ -435,6 +440,7 @@ def make_run_params(state: SimState, mat: Material, dt: float, skin: float):
         normal_stiffness=k_n,
         tangential_stiffness=k_t,
         friction=mat.contact_friction,
+        wall_friction=None if math.isnan(mat.wall_friction) else mat.wall_friction,
         normal_damping=damping_from_restitution(mat.restitution, k_n, m_eff),
         tangential_damping=damping_from_restitution(mat.restitution, k_t, m_eff),
         gravity=(0.0, 0.0),

@@ -2,25 +2,35 @@
 interface bond vs the parallel bond (paper 003 §3, Fig. 3-4, in 2D).
 
 A rectangle ``width x height`` of bonded discs or Voronoi cells (the gypsum-like material of
-:mod:`jaxgran.scenes.interface`, plane stress) sits in a box of four walls (bottom, left,
-right, top). For every confinement ``sigma3`` in ``confinements`` (default 2, 5, 10, 20 and
-40 MPa, paper 003's values): all four walls servo to sigma3 (isotropic stage), then the axial
-walls close at ``strain_rate`` (strain control) while the lateral servo walls hold sigma3.
-Stresses are compression positive, each the mean of its two walls' ``-F . n / (l T)`` with l
-the current specimen size. Reported per confinement: the peak axial stress s1, the lateral
-stress at the peak, and the post-peak ratio (mean stress over the last 20 % of the strain
-over the peak: near 1 is a plateau, low is brittle).
+:mod:`jaxgran.scenes.interface`, plane stress) sits in a box of four walls: bottom and top
+platens with ``wall_friction`` (nan: ``contact_friction``, as in the unconfined test) and
+frictionless side walls (``side_friction = 0``: they stand for the membrane; side-wall
+friction would carry part of the axial load, up to ``2 mu sigma3 height / width``). For every
+confinement ``sigma3`` in ``confinements`` (default 2, 5, 10, 20 and 40 MPa, paper 003's
+values): all four walls servo to sigma3 (isotropic stage; a warning if it has not converged
+within ``iso_max_time``), then the axial walls close at ``strain_rate`` (strain control) while
+the lateral servo walls hold sigma3. The shearing ends at ``max_strain``, or once the deviator
+q has stayed below ``drop_fraction`` of its peak for ``post_peak_strain`` of axial strain
+after elements failed (a stick-slip dip that recovers does not end it). Stresses are
+compression positive, each the mean of its two walls' ``-F . n / (l T)`` with l the current
+specimen size. Reported per confinement: the peak axial stress s1 (at the largest q of the
+run), the lateral stress there, whether the run ended on a drop after the peak (``peaked``;
+otherwise s1 is the stress at ``max_strain``, a lower bound of the strength) and the
+post-peak ratio (mean q over the last 20 % of the strain over the peak: near 1 is a plateau
+or hardening, low is brittle).
 
 With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
-of the same specimen add their Mohr circles, and the peak circles are fitted with the linear
-Mohr-Coulomb line and the quadratic parabola
-(:func:`jaxgran.scenes.interface.mohr_envelope_fits`): R^2 of each, for ``--set bond=...``.
+of the same specimen (with the same platen friction) add their Mohr circles, and the peak
+circles are fitted with the linear Mohr-Coulomb line and the quadratic parabola
+(:func:`jaxgran.scenes.interface.mohr_envelope_fits`): R^2 of each, for ``--set bond=...``,
+on all circles (``envelope_*``) and on the real peaks only (``envelope_peaks_only_*``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -45,8 +55,10 @@ class Config(si.Common):
     max_strain: float = 0.03
     drop_fraction: float = 0.7  # stop below this x the peak deviator (after the peak)
     iso_tolerance: float = 0.02  # isotropic stage ends when every wall is this close
-    iso_max_time: float = 2.0e-3  # s
+    iso_max_time: float = 6.0e-3  # s
     servo_response: float = 3.0  # servo time constant in wave transits across the block
+    side_friction: float = 0.0  # side walls (the membrane: frictionless)
+    post_peak_strain: float = 0.005  # stop once q stays below drop_fraction x peak this long
     with_tension: bool = True
     with_uniaxial: bool = True
 
@@ -88,6 +100,11 @@ def build(cfg: Config, sigma3: float, spec: si.Specimen | None = None) -> si.Set
     spec = spec or si.make_specimen(cfg, region, mat)
     setup = si.prepare(spec, mat, _walls(spec, mat, cfg, sigma3), cfg, margin=0.5 * cfg.height)
     setup.control = bd.make_control(setup.state, box=True)
+    if not cfg.side_friction >= 0:
+        raise ValueError(f"side_friction must be >= 0, got {cfg.side_friction}")
+    platen = float(setup.params.wall_friction)
+    mu = [platen, cfg.side_friction, cfg.side_friction, platen]  # bottom, left, right, top
+    setup.params = replace(setup.params, wall_friction=jnp.asarray(mu, setup.params.dt.dtype))
     return setup
 
 
@@ -104,6 +121,29 @@ def box_stress(series: dict, thickness: float) -> tuple[np.ndarray, np.ndarray, 
     return s_ax, s_lat, height
 
 
+def new_drop_track() -> dict:
+    """State of :func:`sustained_drop` for one run."""
+    return {"best": -np.inf, "below_since": None, "peaked": False}
+
+
+def sustained_drop(track: dict, q, strain, failed: bool, fraction: float, window: float) -> bool:
+    """Feed the records of one segment (deviator ``q`` in Pa and axial ``strain``, in order);
+    True once q has stayed below ``fraction`` of its running peak over at least ``window`` of
+    strain (a dip that recovers within ``window`` resets the count). Drops count only when
+    ``failed`` (some element broke) and the peak is positive. Updates ``track`` (also its
+    ``peaked`` flag)."""
+    for qk, ek in zip(np.asarray(q, float), np.asarray(strain, float), strict=True):
+        track["best"] = max(track["best"], float(qk))
+        low = failed and track["best"] > 0 and qk < fraction * track["best"]
+        if not low:
+            track["below_since"] = None
+        elif track["below_since"] is None:
+            track["below_since"] = float(ek)
+    since = track["below_since"]
+    track["peaked"] = since is not None and float(strain[-1]) - since >= window
+    return track["peaked"]
+
+
 def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = False) -> dict:
     """Isotropic stage to sigma3, then strain-controlled axial loading; returns the series
     (both stages), the final state, the setup and the record index where shearing began."""
@@ -118,6 +158,15 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
     dt = float(setup.params.dt)
     iso = si.drive(setup, int(math.ceil(cfg.iso_max_time / dt)), cfg, iso_done, progress=progress)
     state = iso.state
+    s_ax, s_lat, _ = box_stress(iso.series, T)
+    off = max(abs(s_ax[-1] - sigma3), abs(s_lat[-1] - sigma3)) / sigma3
+    if off > cfg.iso_tolerance:
+        warnings.warn(
+            f"isotropic stage to {sigma3 / 1e6:g} MPa ended after iso_max_time = "
+            f"{cfg.iso_max_time:g} s at s_axial = {s_ax[-1] / 1e6:.2f} and s_lateral = "
+            f"{s_lat[-1] / 1e6:.2f} MPa ({100 * off:.1f} % off); raise iso_max_time",
+            stacklevel=2,
+        )
     v = 0.5 * cfg.strain_rate * cfg.height
     w = state.walls
     mode = jnp.asarray([WALL_VELOCITY, WALL_SERVO, WALL_SERVO, WALL_VELOCITY], jnp.int32)
@@ -126,19 +175,18 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
     h0 = float(w.point[bd.TOP, 1] - w.point[bd.BOTTOM, 1])
 
     damaged0 = si.n_damaged(state)
+    track = new_drop_track()
 
     def shear_stop(state, rec):
-        s_ax, s_lat, h = box_stress(rec, T)
-        q = s_ax - s_lat
-        shear_stop.best = max(shear_stop.best, float(q.max()))
-        strain = 1.0 - h[-1] / h0
         # a drop counts only once elements have failed during shearing (not in the isotropic
-        # stage) and the deviator has built up
-        past = q[-1] < cfg.drop_fraction * shear_stop.best and shear_stop.best > 0
-        past = past and si.n_damaged(state) > damaged0 and strain > 0
-        return state, bool(past or strain >= cfg.max_strain)
+        # stage); see sustained_drop
+        s_ax, s_lat, h = box_stress(rec, T)
+        failed = si.n_damaged(state) > damaged0
+        past = sustained_drop(
+            track, s_ax - s_lat, 1.0 - h / h0, failed, cfg.drop_fraction, cfg.post_peak_strain
+        )
+        return state, bool(past or 1.0 - h[-1] / h0 >= cfg.max_strain)
 
-    shear_stop.best = -np.inf
     n = int(math.ceil(cfg.max_strain / cfg.strain_rate / dt)) + 1
     shear = si.drive(setup, n, cfg, shear_stop, progress=progress)
     series = si.concat_series([iso.series, shear.series])
@@ -151,6 +199,7 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
         "steps": iso.steps + shear.steps,
         "wall_time_s": iso.wall_time_s + shear.wall_time_s,
         "result": shear,
+        "peaked": track["peaked"],
     }
 
 
@@ -168,6 +217,9 @@ def measure_confined(out: dict, thickness: float) -> dict:
         "strain_at_peak": float(strain[k]),
         "final_strain": float(strain[-1]),
         "post_peak_ratio": float(q[tail].mean() / q[k]) if q[k] > 0 else math.nan,
+        # True: the run ended on a sustained drop after the peak (a brittle peak); False: on
+        # max_strain, so sigma1_peak is the largest stress so far (a lower bound)
+        "peaked": bool(out.get("peaked", False)),
     }
     res.update(itf.element_summary(out["state"].bonds))
     return res
@@ -208,7 +260,22 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
     if "ucs_Pa" in extra and "tensile_strength_Pa" in extra:
         extra["ucs_over_tensile_strength"] = extra["ucs_Pa"] / extra["tensile_strength_Pa"]
     fits = si.mohr_envelope_fits(s1, s3)
-    return {"runs": runs, "per_confinement": per, "sigma1": s1, "sigma3": s3, "fits": fits, **extra}
+    # the same fits on the circles of real peaks only (the confined runs that ended on a drop,
+    # plus tension and unconfined)
+    keep = [p["peaked"] for p in per] + [True] * (len(s1) - len(per))
+    peaks = si.mohr_envelope_fits(
+        [a for a, k in zip(s1, keep, strict=True) if k],
+        [a for a, k in zip(s3, keep, strict=True) if k],
+    )
+    return {
+        "runs": runs,
+        "per_confinement": per,
+        "sigma1": s1,
+        "sigma3": s3,
+        "fits": fits,
+        "fits_peaks": peaks,
+        **extra,
+    }
 
 
 def _names(cls) -> set[str]:
@@ -226,6 +293,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         "peak_sigma1_Pa": env["sigma1"],
         "peak_sigma3_Pa": env["sigma3"],
         **{f"envelope_{k}": v for k, v in env["fits"].items()},
+        **{f"envelope_peaks_only_{k}": v for k, v in env["fits_peaks"].items()},
         **{k: v for k, v in env.items() if k.endswith("_Pa") or k.startswith("ucs_over")},
         "steps": int(sum(r["steps"] for r in runs)),
         "wall_time_s": float(sum(r["wall_time_s"] for r in runs)),
@@ -243,6 +311,10 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         k0 = out["start"]
         strain = 1.0 - h[k0:] / out["height0"]
         curves[f"sigma3 = {s3 / 1e6:g} MPa"] = (100 * strain, (s_ax - s_lat)[k0:] / 1e6)
+    peaked = [p["peaked"] for p in env["per_confinement"]]
+    peaked += [True] * (len(env["sigma1"]) - len(peaked))
+    some = "linear_r2" in env["fits_peaks"] and not all(peaked)
+    shown, which = (env["fits_peaks"], "black (peak)") if some else (env["fits"], "")
     figs = [
         pi.plot_curve(
             curves, "axial strain (%)", "deviator s1 - s3 (MPa)", Path(out_dir) / "deviator.png"
@@ -250,9 +322,10 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         pi.plot_mohr(
             env["sigma1"],
             env["sigma3"],
-            env["fits"],
+            shown,
             Path(out_dir) / "mohr_envelope.png",
-            f"bond = {cfg.bond}",
+            f"bond = {cfg.bond}, {cfg.particles}; envelopes fitted to the {which or 'all'} circles",
+            peaked=peaked,
         ),
         pi.plot_cracks(
             last["state"],
