@@ -73,9 +73,7 @@ def test_notebooks_are_stored_without_outputs():
         assert "assert " in code[-1].source, name
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", NOTEBOOKS)
-def test_notebook_runs(name, tmp_path):
+def _run_notebook(name: str, tmp_path: Path) -> None:
     nb = _with_quick(nbformat.read(NOTEBOOKS_DIR / name, as_version=4), quick=not FULL)
     env = dict(os.environ)
     env["JAX_PLATFORMS"] = "cpu"
@@ -103,3 +101,19 @@ def test_notebook_runs(name, tmp_path):
     text = "".join(o.get("text", "") for o in code[-1].get("outputs", []))
     assert "all checks passed" in text, f"{name}: the closing check cell did not finish"
     print(f"{name}: {wall:.1f} s")
+
+
+# Two classes so that `pytest -n 2 --dist loadscope` (the README's test command) can run the
+# two halves on different workers: each notebook runs in its own kernel and shares nothing.
+@pytest.mark.slow
+class TestNotebooksFirstHalf:
+    @pytest.mark.parametrize("name", NOTEBOOKS[:3])
+    def test_notebook_runs(self, name, tmp_path):
+        _run_notebook(name, tmp_path)
+
+
+@pytest.mark.slow
+class TestNotebooksSecondHalf:
+    @pytest.mark.parametrize("name", NOTEBOOKS[3:])
+    def test_notebook_runs(self, name, tmp_path):
+        _run_notebook(name, tmp_path)
