@@ -546,6 +546,8 @@ def wall_forces(
     v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
     flat_xi = wall_xi.reshape(2, -1)
     mu_w = jnp.asarray(params.wall_friction)  # scalar, or one per wall [W]
+    if mu_w.ndim == 1 and mu_w.shape[0] != n_w:  # static shapes: checked at trace time
+        raise ValueError(f"wall_friction has {mu_w.shape[0]} values for {n_w} walls")
     (fx, fy), (xx, xy), fn, terms = contact_law(
         ov,
         (cnx, cny),

@@ -253,3 +253,5 @@ def test_wall_friction_can_differ_per_wall():
     np.testing.assert_array_equal(out["scalar"], out["scalar per wall"])
     with pytest.raises(ValueError, match="wall_friction"):
         make_params(wall_friction=(0.2, -0.1))
+    with pytest.raises(ValueError, match="3 values for 2 walls"):
+        wall_forces(parts, walls, xi, make_params(wall_friction=(0.2, 0.3, 0.4)))

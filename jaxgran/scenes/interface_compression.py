@@ -325,7 +325,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     peaked = [p["peaked"] for p in env["per_confinement"]]
     peaked += [True] * (len(env["sigma1"]) - len(peaked))
     some = "linear_r2" in env["fits_peaks"] and not all(peaked)
-    shown, which = (env["fits_peaks"], "black (peak)") if some else (env["fits"], "")
+    shown, which = (env["fits_peaks"], "the black (peak)") if some else (env["fits"], "all")
     figs = [
         pi.plot_curve(
             curves, "axial strain (%)", "deviator s1 - s3 (MPa)", Path(out_dir) / "deviator.png"
@@ -335,7 +335,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
             env["sigma3"],
             shown,
             Path(out_dir) / "mohr_envelope.png",
-            f"bond = {cfg.bond}, {cfg.particles}; envelopes fitted to the {which or 'all'} circles",
+            f"bond = {cfg.bond}, {cfg.particles}; envelopes fitted to {which} circles",
             peaked=peaked,
         ),
         pi.plot_cracks(
