@@ -104,10 +104,10 @@ def build(cfg: Config, sigma3: float, spec: si.Specimen | None = None) -> si.Set
     mat = si.material_from(cfg)
     region = ("rect", (0.0, 0.0), (cfg.width, cfg.height))
     spec = spec or si.make_specimen(cfg, region, mat)
-    setup = si.prepare(spec, mat, _walls(spec, mat, cfg, sigma3), cfg, margin=0.5 * cfg.height)
-    setup.control = bd.make_control(setup.state, box=True)
     if not cfg.side_friction >= 0:
         raise ValueError(f"side_friction must be >= 0, got {cfg.side_friction}")
+    setup = si.prepare(spec, mat, _walls(spec, mat, cfg, sigma3), cfg, margin=0.5 * cfg.height)
+    setup.control = bd.make_control(setup.state, box=True)
     platen = float(setup.params.wall_friction)
     mu = [platen, cfg.side_friction, cfg.side_friction, platen]  # bottom, left, right, top
     setup.params = replace(setup.params, wall_friction=jnp.asarray(mu, setup.params.dt.dtype))
@@ -285,6 +285,7 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
         "sigma3": s3,
         "fits": fits,
         "fits_peaks": peaks,
+        "peaked": keep,  # per circle: confinements, then unconfined and tension (True)
         **extra,
     }
 
@@ -322,8 +323,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         k0 = out["start"]
         strain = 1.0 - h[k0:] / out["height0"]
         curves[f"sigma3 = {s3 / 1e6:g} MPa"] = (100 * strain, (s_ax - s_lat)[k0:] / 1e6)
-    peaked = [p["peaked"] for p in env["per_confinement"]]
-    peaked += [True] * (len(env["sigma1"]) - len(peaked))
+    peaked = env["peaked"]
     some = "linear_r2" in env["fits_peaks"] and not all(peaked)
     shown, which = (env["fits_peaks"], "the black (peak)") if some else (env["fits"], "all")
     figs = [
