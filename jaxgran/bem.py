@@ -1562,8 +1562,11 @@ class Screening(NamedTuple):
         bound: ``[P]`` upper bound of each particle's largest psi (Pa), ``psi_bound``.
         candidates: ``[K]`` particle indices, largest ``bound / threshold`` first.
         is_candidate: ``[K]`` bound >= threshold (the others fill the slots).
-        sigma: ``[K, M, 3]`` stress of the candidates (Pa), as ``psi_batched``.
-        psi: ``[K, M]`` psi of the candidates (Pa), as ``psi_batched``.
+        sigma: ``[K, M, 3]`` stress of the particles in ``candidates`` (Pa), as
+            ``psi_batched``; zeros when no particle passes the bound (the field is then not
+            computed).
+        psi: ``[K, M]`` psi of the particles in ``candidates`` (Pa), as ``psi_batched``;
+            zeros when no particle passes the bound.
         reaches: ``[K]`` candidate whose largest psi reaches the threshold.
         n_candidates: number of particles with bound >= threshold (scalar int).
         max_contacts: most real contacts of a particle in ``candidates`` (scalar int).
@@ -1625,25 +1628,34 @@ def _screen_core(
         cf_k = jnp.take_along_axis(cf_k, order[..., None], axis=1)
         cm_k = jnp.take_along_axis(cm_k, order, axis=1)
         fits = jnp.all(n_real <= c_keep)
-    stress = jax.vmap(
-        lambda i, cp, cf, cm: _contact_stress(
-            ops.stress_per_force,
-            ops.nodes[i],
-            ops.centres[i],
-            ops.node_angles[i],
-            ops.points[i],
-            cp,
-            cf,
-            cm,
-            ops.load_model,
-            pid=i,
-        )
-    )(idx, cp_k.astype(dtype), cf_k.astype(dtype), cm_k)
     keep = ops.point_mask[idx] & ops.valid[idx][:, None]
-    sigma = jnp.where(keep[..., None], stress / thickness[idx][:, None, None], 0.0)
-    psi = jnp.where(keep, equivalent_stress(sigma, ops.poisson_ratio, ops.plane), 0.0)
-    is_cand = top >= 1.0
     n_cand = jnp.sum(ratio >= 1.0)
+
+    def field(_):
+        stress = jax.vmap(
+            lambda i, cp, cf, cm: _contact_stress(
+                ops.stress_per_force,
+                ops.nodes[i],
+                ops.centres[i],
+                ops.node_angles[i],
+                ops.points[i],
+                cp,
+                cf,
+                cm,
+                ops.load_model,
+                pid=i,
+            )
+        )(idx, cp_k.astype(dtype), cf_k.astype(dtype), cm_k)
+        sigma = jnp.where(keep[..., None], stress / thickness[idx][:, None, None], 0.0)
+        psi = jnp.where(keep, equivalent_stress(sigma, ops.poisson_ratio, ops.plane), 0.0)
+        return sigma, psi
+
+    def nothing(_):
+        return jnp.zeros((*keep.shape, 3), dtype), jnp.zeros(keep.shape, dtype)
+
+    # most screenings of a loaded packing find no candidate: the field is then skipped
+    sigma, psi = lax.cond(n_cand > 0, field, nothing, None)
+    is_cand = top >= 1.0
     return Screening(
         bound=bound,
         candidates=idx,

@@ -64,3 +64,17 @@ def test_bad_setting_is_refused(capsys):
     assert main(["run", "deposit", "--set", "no_such_key=1"]) == 2
     assert "valid settings" in capsys.readouterr().err
     assert main(["run", "no-such-scene"]) == 2
+
+
+def test_list_settings_take_any_number_of_values():
+    """A list setting (confinements, snapshot times) is read with any number of values of its
+    element type, brackets optional; a value of the wrong type is an error naming it."""
+    from jaxgran.scenes import interface_compression as ic
+    from jaxgran.scenes.base import apply_overrides
+
+    cfg = apply_overrides(ic.Config(), {"confinements": "10e6"})
+    assert cfg.confinements == (10.0e6,)
+    cfg = apply_overrides(ic.Config(), {"confinements": "(2e6, 40e6, 80e6)"})
+    assert cfg.confinements == (2.0e6, 40.0e6, 80.0e6)
+    with pytest.raises(ValueError, match="confinements='2e6,x'"):
+        apply_overrides(ic.Config(), {"confinements": "2e6,x"})

@@ -349,8 +349,13 @@ def _spheropolygon_area_padded(verts: Array, n_verts: Array, radius: Array) -> A
 
 
 @eqx.filter_jit
-def _bound_jit(ops, contact_points, contact_forces, contact_mask, thickness):
-    return bem.psi_bound(ops, contact_points, contact_forces, contact_mask, thickness=thickness)
+def _bound_jit(ops, particle, contact_points, contact_forces, contact_mask, thickness):
+    """The psi bound over a flat list of the real contacts (``bem._flat_contacts``): its cost
+    grows with the contacts, not with particles x the padded list (half the padded cost on a
+    settled pile, ``benchmarks/SCREENING_RESULTS.md``)."""
+    return bem.psi_bound_flat(
+        ops, particle, contact_points, contact_forces, contact_mask, thickness=thickness
+    )
 
 
 @eqx.filter_jit
@@ -561,11 +566,10 @@ class DsmBreakage:
         if not live.any():
             return np.zeros(0, np.int64)
         dt = p.pos.dtype
+        flat = bem._flat_contacts(tab["points"], tab["forces"], tab["mask"])
         bound = _bound_jit(
             self._bound_operators(state),
-            tab["points"],
-            tab["forces"],
-            tab["mask"],
+            *(jnp.asarray(x) for x in flat),
             jnp.asarray(self.thickness, dt),
         )
         cut = np.asarray(tab["count"]) > self.max_contacts

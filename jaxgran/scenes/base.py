@@ -51,12 +51,42 @@ def _cast(raw: str | Any, current: Any, key: str) -> Any:
         if isinstance(current, float):
             return float(raw)
         if isinstance(current, tuple):
-            return tuple(type(c)(v) for c, v in zip(current, raw.split(","), strict=True))
+            return _cast_tuple(raw, current)
         return raw
     except ValueError as exc:
         raise ValueError(
             f"setting {key}={raw!r} cannot be read as {type(current).__name__}"
         ) from exc
+
+
+def _cast_tuple(raw: str, current: tuple) -> tuple:
+    """``"1e6, 2e6"`` (brackets optional) -> a tuple. A tuple of one element type (every
+    tuple setting of the scenes: confinements, pressures, snapshot times) takes any number
+    of values of that type; a mixed tuple needs one value per element."""
+    body = raw.strip().strip("()[]").strip()
+    items = [v.strip() for v in body.split(",") if v.strip()] if body else []
+    kinds = {type(c) for c in current}
+    if len(kinds) <= 1:
+        kind = kinds.pop() if kinds else (int if all(_is_int(v) for v in items) else float)
+        return tuple(_scalar(v, kind) for v in items)
+    return tuple(_scalar(v, type(c)) for c, v in zip(current, items, strict=True))
+
+
+def _is_int(v: str) -> bool:
+    try:
+        int(v)
+    except ValueError:
+        return False
+    return True
+
+
+def _scalar(v: str, kind: type) -> Any:
+    if kind is int:
+        x = float(v)
+        if not x.is_integer():
+            raise ValueError(v)
+        return int(x)
+    return kind(v)
 
 
 def parse_sets(items: list[str] | None) -> dict[str, str]:
