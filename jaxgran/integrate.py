@@ -71,21 +71,33 @@ def check_time_step(particles: Particles, params: Params) -> None:
         )
 
 
-def wall_velocity(walls: Walls, thickness: Array) -> Array:
-    """Velocity of every wall for the coming step (m/s).
+def wall_velocity(walls: Walls, thickness: Array, dt: Array | float = 0.0) -> tuple[Array, Array]:
+    """Velocity of every wall for the coming step (m/s), and the servo's new integral term.
 
     Servo walls move along their normal so that the compressive stress the particles exert,
-    ``-F . n / (length * thickness)``, approaches ``target_stress``: ``v = g (target - stress)``,
-    capped at ``max_speed``.
+    ``-F . n / (length * thickness)``, approaches ``target_stress``. With the error
+    ``e = target - stress`` the speed is ``v = g e + I``, capped at ``max_speed``, where the
+    integral term ``I`` (``servo_integral``, m/s) grows by ``g e dt / T_i`` per step
+    (``T_i = servo_time``; +inf keeps ``I = 0``, the proportional servo) and is itself
+    capped at ``max_speed`` (no wind-up). With ``T_i`` of about four times the loop's time
+    constant ``1 / (g K / (L t))`` the loop is critically damped, and a specimen that dilates
+    at a steady rate is held at the target stress instead of ``rate / g`` away from it.
+
+    Returns:
+        ``(velocity [W, 2], servo_integral [W])``.
     """
     stress = -jnp.sum(walls.force * walls.normal, axis=-1) / (walls.length * thickness)
-    speed = jnp.clip(
-        walls.servo_gain * (walls.target_stress - stress), -walls.max_speed, walls.max_speed
-    )
+    err = walls.target_stress - stress
+    servo_on = walls.mode == WALL_SERVO
+    finite = jnp.isfinite(walls.servo_time)
+    rate = jnp.where(finite, 1.0 / jnp.where(finite, walls.servo_time, 1.0), 0.0)
+    integral = walls.servo_integral + walls.servo_gain * err * rate * dt
+    integral = jnp.where(servo_on, jnp.clip(integral, -walls.max_speed, walls.max_speed), 0.0)
+    speed = jnp.clip(walls.servo_gain * err + integral, -walls.max_speed, walls.max_speed)
     servo = speed[:, None] * walls.normal
     moving = walls.mode == WALL_VELOCITY
     v = jnp.where(moving[:, None], walls.vel, 0.0)
-    return jnp.where((walls.mode == WALL_SERVO)[:, None], servo, v)
+    return jnp.where(servo_on[:, None], servo, v), integral
 
 
 def servo_gain_for(length: float, thickness: float, stiffness: float, response_time: float):
@@ -127,8 +139,8 @@ def step(
     p = replace(p, pos=pos, angle=angle, vel=vel, omega=omega)
 
     walls = state.walls
-    wvel = wall_velocity(walls, params.thickness)
-    walls = replace(walls, point=walls.point + dt * wvel, vel=wvel)
+    wvel, integral = wall_velocity(walls, params.thickness, dt)
+    walls = replace(walls, point=walls.point + dt * wvel, vel=wvel, servo_integral=integral)
 
     if rebuild is None:
         rebuild = needs_rebuild(p, state.contacts, params.skin)

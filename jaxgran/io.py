@@ -72,6 +72,8 @@ UNITS: dict[str, str] = {
     "target_stress": "Pa",
     "servo_gain": "m/(s Pa)",
     "max_speed": "m/s",
+    "servo_time": "s",
+    "servo_integral": "m/s",
     "contact_force": "N",
 }
 

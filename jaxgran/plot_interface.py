@@ -117,7 +117,8 @@ def plot_mohr(sigma_1, sigma_3, fits: dict, path: Path, title: str = "", peaked=
     ax.set_aspect("equal")
     ax.set_ylim(bottom=0)
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:  # no fit (fewer than 3 circles): no legend
+        ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
     return _save(fig, path)
 

@@ -107,6 +107,11 @@ class Walls(eqx.Module):
         target_stress ``[W]`` (Pa, compression positive), servo_gain ``[W]`` (m/(s Pa)),
         max_speed ``[W]`` (m/s, servo speed cap), length ``[W]`` (m, loaded length used to turn
         force into stress: stress = force / (length * thickness)).
+        servo_time ``[W]`` (s): integral time T_i of the servo; +inf (the default) is the
+        proportional servo alone, which trails a specimen that keeps dilating or contracting
+        by ``speed / servo_gain``; finite adds the integral term that removes that offset
+        (:func:`jaxgran.integrate.wall_velocity`).
+        servo_integral ``[W]`` (m/s): the integral term's speed, carried from step to step.
         force ``[W, 2]`` (N): force exerted BY the particles ON the wall in the last step.
         active ``[W]`` bool.
     """
@@ -122,6 +127,8 @@ class Walls(eqx.Module):
     length: Array
     force: Array
     active: Array
+    servo_time: Array
+    servo_integral: Array
 
     @property
     def count(self) -> int:
@@ -448,6 +455,7 @@ def wall(
     servo_gain: float = 0.0,
     max_speed: float = np.inf,
     length: float = 1.0,
+    servo_time: float = np.inf,
 ) -> dict:
     """One wall description for :func:`make_walls` (see :class:`Walls` for the fields)."""
     nrm = np.asarray(normal, dtype=float)
@@ -456,6 +464,8 @@ def wall(
         raise ValueError("wall normal must be a non-zero vector")
     if length <= 0:
         raise ValueError("wall length (used to turn force into stress) must be positive")
+    if not servo_time > 0:
+        raise ValueError(f"servo_time (integral time, s) must be > 0 or inf, got {servo_time}")
     return {
         "point": np.asarray(point, dtype=float),
         "normal": nrm / norm,
@@ -466,6 +476,7 @@ def wall(
         "servo_gain": float(servo_gain),
         "max_speed": float(max_speed),
         "length": float(length),
+        "servo_time": float(servo_time),
     }
 
 
@@ -477,7 +488,7 @@ def make_walls(walls: list[dict], dtype=None) -> Walls:
         walls = [wall((0.0, 0.0), (0.0, 1.0))]
         active = np.zeros(1, dtype=bool)
     fd = _float(dtype)
-    col = lambda key: np.stack([np.asarray(w[key]) for w in walls])
+    col = lambda key: np.stack([np.asarray(w.get(key, _WALL_DEFAULTS.get(key))) for w in walls])
     return Walls(
         point=jnp.asarray(col("point"), fd),
         normal=jnp.asarray(col("normal"), fd),
@@ -490,7 +501,13 @@ def make_walls(walls: list[dict], dtype=None) -> Walls:
         length=jnp.asarray(col("length"), fd),
         force=jnp.zeros((len(walls), 2), fd),
         active=jnp.asarray(active),
+        servo_time=jnp.asarray(col("servo_time"), fd),
+        servo_integral=jnp.zeros(len(walls), fd),
     )
+
+
+# fields a wall description may leave out (descriptions written before they existed)
+_WALL_DEFAULTS = {"servo_time": np.inf}
 
 
 def box_walls(lower, upper, *, top: bool = True) -> list[dict]:

@@ -266,3 +266,69 @@ def test_full_contact_list_grows_with_the_pair_capacity():
     )
     # the overlapped side wall pushes the square out
     assert float(small.state.particles.pos[0, 0]) > float(parts.pos[0, 0])
+
+
+@pytest.mark.parametrize("integral", [False, True])
+def test_servo_integral_term_removes_the_offset_of_a_moving_specimen(integral):
+    """A block rides up on a floor that moves at v; the servo lid must retreat at v. The
+    proportional servo does so only at the stress offset v / g (its steady state); with the
+    integral term (T_i = 4 loop time constants) the lid holds the target itself."""
+    from jaxgran.state import WALL_SERVO, WALL_VELOCITY, wall
+
+    h, r, k, g, v = 0.02, 1e-3, 2e4, 2e-4, 2e-3
+    block = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float) + [0.03, r]
+    parts = particles_from_polygons([block], r, RHO)
+    m = float(parts.mass[0])
+    width = 0.08
+    params = make_params(
+        normal_stiffness=k,
+        tangential_stiffness=k,
+        friction=0.5,
+        normal_damping=damping_from_restitution(0.1, k, m),
+        tangential_damping=damping_from_restitution(0.1, k, m),
+        skin=1e-3,
+    )
+    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.2)))
+    thickness = float(params.thickness)
+    tau = width * thickness / (g * k)  # the loop's time constant against the block (s)
+    target = 40.0  # Pa
+    walls = make_walls(
+        [
+            wall((0.0, 0.0), (0.0, 1.0), mode=WALL_VELOCITY, velocity=(0.0, v), length=width),
+            wall(
+                (0.0, h + 2 * r + 2e-3),
+                (0.0, -1.0),
+                mode=WALL_SERVO,
+                target_stress=target,
+                servo_gain=g,
+                max_speed=0.05,
+                length=width,
+                servo_time=4.0 * tau if integral else np.inf,
+            ),
+        ]
+    )
+    grid = make_grid((-0.01, -0.01), (width + 0.01, 0.3), float(parts.bound_radius[0]), 1e-3)
+    res = simulate(
+        make_state(parts, walls, pair_capacity=4),
+        params,
+        grid,
+        n_steps=30_000,
+        record_every=500,
+        records_per_segment=10,
+        progress=False,
+    )
+    stress = res.series["wall_force"][:, 1, 1] / (width * thickness)
+    expected = target if integral else target + v / g  # 40 or 50 Pa
+    assert np.mean(stress[-10:]) == pytest.approx(expected, rel=0.01)
+    # the lid retreats with the floor
+    pts = res.series["wall_point"][:, 1, 1]
+    t = res.series["time"]
+    assert (pts[-1] - pts[-11]) / (t[-1] - t[-11]) == pytest.approx(v, rel=0.02)
+
+
+def test_bad_servo_time_is_refused():
+    from jaxgran.state import wall
+
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match="servo_time"):
+            wall((0.0, 0.0), (0.0, 1.0), servo_time=bad)

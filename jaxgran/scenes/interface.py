@@ -593,9 +593,11 @@ def mohr_envelope_fits(sigma_1, sigma_3) -> dict:
     s1 = np.asarray(sigma_1, float)
     s3 = np.asarray(sigma_3, float)
     p, q = 0.5 * (s1 + s3), 0.5 * (s1 - s3)
-    ss_tot = float(np.sum((q - q.mean()) ** 2))
     out: dict = {"n_circles": int(p.size)}
-    if p.size < 3 or ss_tot <= 0:
+    if p.size < 3:
+        return out
+    ss_tot = float(np.sum((q - q.mean()) ** 2))
+    if ss_tot <= 0:
         return out
     a1, a0 = np.polyfit(p, q, 1)
     q_lin = a0 + a1 * p
