@@ -188,9 +188,9 @@ def test_bad_parameters_are_refused():
         make_params(friction=-0.1)
 
 
-def test_servo_wall_holds_target_stress_and_bar_moves_at_its_velocity():
-    from jaxgran.state import WALL_SERVO, WALL_VELOCITY, wall
-
+def _servo_block():
+    """A 2 cm square block (sphero-radius 1 mm) and contact parameters for the servo tests:
+    (h, r, k, particles, mass, width of the box, params, thickness)."""
     h, r, k = 0.02, 1e-3, 2e4
     block = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float) + [0.03, r]
     parts = particles_from_polygons([block], r, RHO)
@@ -206,6 +206,13 @@ def test_servo_wall_holds_target_stress_and_bar_moves_at_its_velocity():
     )
     params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.2)))
     thickness = float(params.thickness)
+    return h, r, k, parts, m, width, params, thickness
+
+
+def test_servo_wall_holds_target_stress_and_bar_moves_at_its_velocity():
+    from jaxgran.state import WALL_SERVO, WALL_VELOCITY, wall
+
+    h, r, _, parts, m, width, params, thickness = _servo_block()
     target = 40.0  # Pa over width x thickness: 3.2 N, ~10x the block's weight
     walls = make_walls(
         box_walls((0.0, 0.0), (width, 0.12), top=False)
@@ -275,21 +282,8 @@ def test_servo_integral_term_removes_the_offset_of_a_moving_specimen(integral):
     integral term (T_i = 4 loop time constants) the lid holds the target itself."""
     from jaxgran.state import WALL_SERVO, WALL_VELOCITY, wall
 
-    h, r, k, g, v = 0.02, 1e-3, 2e4, 2e-4, 2e-3
-    block = np.array([[0, 0], [h, 0], [h, h], [0, h]], dtype=float) + [0.03, r]
-    parts = particles_from_polygons([block], r, RHO)
-    m = float(parts.mass[0])
-    width = 0.08
-    params = make_params(
-        normal_stiffness=k,
-        tangential_stiffness=k,
-        friction=0.5,
-        normal_damping=damping_from_restitution(0.1, k, m),
-        tangential_damping=damping_from_restitution(0.1, k, m),
-        skin=1e-3,
-    )
-    params = replace(params, dt=jnp.asarray(stable_time_step(parts, params, 0.2)))
-    thickness = float(params.thickness)
+    g, v = 2e-4, 2e-3  # servo gain (m/(s Pa)), floor speed (m/s)
+    h, r, k, parts, _, width, params, thickness = _servo_block()
     tau = width * thickness / (g * k)  # the loop's time constant against the block (s)
     target = 40.0  # Pa
     walls = make_walls(
