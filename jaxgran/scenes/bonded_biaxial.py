@@ -78,6 +78,8 @@ class Config:
     iso_tolerance: float = 0.01  # isotropic stage ends when every wall is within this of p
     iso_max_time: float = 2.0e-3  # s
     servo_response: float = 0.15  # servo time constant in wave transit times across the block
+    # integral time of the servo in units of that time constant; inf = proportional alone
+    servo_integral: float = math.inf
     band_fraction: float = 0.15  # strain-gauge bands: cells this close to an edge (x size)
     dt_safety: float = 0.5
     skin_fraction: float = 0.1
@@ -137,6 +139,7 @@ def _walls(cfg: Config, mat: bd.Material, p: float) -> list[dict]:
                 length, mat.thickness, e * mat.thickness * length / span, tau
             ),
             max_speed=2.0 * cfg.strain_rate * cfg.height,
+            servo_time=cfg.servo_integral * tau,
         )
     return w
 

@@ -4,23 +4,23 @@ interface bond vs the parallel bond (paper 003 §3, Fig. 3-4, in 2D).
 A rectangle ``width x height`` of bonded discs or Voronoi cells (the gypsum-like material of
 :mod:`jaxgran.scenes.interface`, plane stress) sits in a box of four walls: bottom and top
 platens with ``wall_friction`` (nan: ``contact_friction``, as in the unconfined test) and
-frictionless side walls (``side_friction = 0``: they stand for the membrane; side-wall
-friction would carry part of the axial load, up to ``2 mu sigma3 height / width``). For every
-confinement ``sigma3`` in ``confinements`` (default 2, 5, 10, 20 and 40 MPa, paper 003's
-values): all four walls servo to sigma3 (isotropic stage; a warning if it has not converged
-within ``iso_max_time``), then the axial walls close at ``strain_rate`` (strain control) while
-the lateral servo walls hold sigma3. The servo is proportional-integral (integral time
-``servo_integral`` loop time constants): a proportional servo alone trails a specimen that
-dilates while it is sheared, by ``dilation rate / gain`` (on Voronoi cells it held 4.7 MPa for
-a 2 MPa target at the peak). The shearing ends at ``max_strain``, or once the deviator
-q has stayed below ``drop_fraction`` of its peak for ``post_peak_strain`` of axial strain
-after elements failed (a stick-slip dip that recovers does not end it). Stresses are
+frictionless side walls (``side_friction = 0``: they stand for the membrane; side-wall friction
+would carry part of the axial load, up to ``2 mu sigma3 height / width``). For every confinement
+``sigma3`` in ``confinements`` (default 2, 5, 10, 20 and 40 MPa, paper 003's values): all four
+walls servo to sigma3 (isotropic stage; a warning if it has not converged within
+``iso_max_time``), then the axial walls close at ``strain_rate`` (strain control) while the
+lateral servo walls hold sigma3. In the shearing the lateral servo is proportional-integral
+(integral time ``servo_integral`` loop time constants): a proportional servo alone trails a
+specimen that dilates while it is sheared, by ``dilation rate / gain`` (on Voronoi cells it held
+4.7 MPa for a 2 MPa target at the peak). The shearing ends at ``max_strain``, or once the
+deviator q has stayed below ``drop_fraction`` of its peak for ``post_peak_strain`` of axial
+strain after elements failed (a stick-slip dip that recovers does not end it). Stresses are
 compression positive, each the mean of its two walls' ``-F . n / (l T)`` with l the current
-specimen size. Reported per confinement: the peak axial stress s1 (at the largest q of the
-run), the lateral stress there, whether the run ended on a drop after the peak (``peaked``;
-otherwise s1 is the stress at ``max_strain``, a lower bound of the strength) and the
-post-peak ratio (mean q over the last 20 % of the strain over the peak: near 1 is a plateau
-or hardening, low is brittle).
+specimen size. Reported per confinement: the peak axial stress s1 (at the largest q of the run),
+the lateral stress there, whether the run ended on a drop after the peak (``peaked``; otherwise
+s1 is the stress at ``max_strain``, a lower bound of the strength) and the post-peak ratio (mean
+q over the last 20 % of the strain over the peak: near 1 is a plateau or hardening, low is
+brittle).
 
 With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
 of the same specimen (with the same platen friction) add their Mohr circles, and the peak
@@ -83,17 +83,27 @@ QUICK = {
 }
 
 
-def _walls(spec: si.Specimen, mat: si.Material, cfg: Config, sigma3: float) -> list[dict]:
-    x0, x1, y0, y1 = si.extent(spec)
-    walls = box_walls((x0, y0), (x1, y1))
+def _servo_tau(mat: si.Material, cfg: Config) -> float:
+    """Time constant (s) of the servo loop: ``servo_response`` wave transits across the block
+    (its modulus taken as half the element modulus)."""
     e = 0.5 * mat.modulus  # order of the block's modulus (Pa)
     rho = mat.density * cfg.solid_fraction
     transits = cfg.servo_response or (3.0 if cfg.particles == "discs" else 10.0)
     if not transits > 0:
         raise ValueError(f"servo_response must be > 0 (or 0 for the default), got {transits}")
-    tau = transits * max(cfg.width, cfg.height) / math.sqrt(e / rho)
     if not cfg.servo_integral > 0:
         raise ValueError(f"servo_integral must be > 0 (inf: off), got {cfg.servo_integral}")
+    return transits * max(cfg.width, cfg.height) / math.sqrt(e / rho)
+
+
+def _walls(spec: si.Specimen, mat: si.Material, cfg: Config, sigma3: float) -> list[dict]:
+    """Four servo walls for the isotropic stage (proportional: the specimen is at rest, so the
+    proportional servo has no offset there, and an integral term would wind up while the
+    walls close in and overshoot)."""
+    x0, x1, y0, y1 = si.extent(spec)
+    walls = box_walls((x0, y0), (x1, y1))
+    e = 0.5 * mat.modulus  # order of the block's modulus (Pa)
+    tau = _servo_tau(mat, cfg)
     for k, d in enumerate(walls):
         span = (y1 - y0) if k in (bd.BOTTOM, bd.TOP) else (x1 - x0)
         gain = servo_gain_for(
@@ -104,7 +114,6 @@ def _walls(spec: si.Specimen, mat: si.Material, cfg: Config, sigma3: float) -> l
             target_stress=float(sigma3),
             servo_gain=gain,
             max_speed=2.0 * cfg.strain_rate * cfg.height,
-            servo_time=cfg.servo_integral * tau,
         )
     return walls
 
@@ -186,7 +195,19 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
     w = state.walls
     mode = jnp.asarray([WALL_VELOCITY, WALL_SERVO, WALL_SERVO, WALL_VELOCITY], jnp.int32)
     vel = jnp.asarray([[0.0, v], [0.0, 0.0], [0.0, 0.0], [0.0, -v]], w.vel.dtype)
-    setup.state = replace(state, walls=replace(w, mode=mode, vel=vel))
+    # the lateral walls hold sigma3 while the specimen dilates: proportional-integral
+    ti = cfg.servo_integral * _servo_tau(setup.material, cfg)
+    servo_time = jnp.asarray([math.inf, ti, ti, math.inf], w.servo_time.dtype)
+    setup.state = replace(
+        state,
+        walls=replace(
+            w,
+            mode=mode,
+            vel=vel,
+            servo_time=servo_time,
+            servo_integral=jnp.zeros_like(w.servo_integral),
+        ),
+    )
     h0 = float(w.point[bd.TOP, 1] - w.point[bd.BOTTOM, 1])
 
     damaged0 = si.n_damaged(state)
