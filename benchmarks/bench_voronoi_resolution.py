@@ -2,11 +2,11 @@
 (issue 9): the bonded Brazilian disc (`bonded-brazilian`, paper 002 §3) meshed with n cells,
 several seeds per n, each run to failure one after another (float64).
 
-Each run is cached as ``<out>/raw/brazilian_c<n>_s<seed>.json`` (the same files and fields as
-``benchmarks/run_bonded_acceptance.py brazilian``, whose 500-cell runs are reused), so a
-repeated call only adds what is missing:
+Each run is cached as ``benchmarks/voronoi_resolution/raw/brazilian_c<n>_s<seed>.json`` (the
+fields of ``benchmarks/run_bonded_acceptance.py brazilian``; ``--raw`` elsewhere), so a
+repeated call only adds what is missing (delete the folder to rerun after a model change):
 
-    python benchmarks/bench_voronoi_resolution.py                       # 100, 200, 500 cells
+    python benchmarks/bench_voronoi_resolution.py          # 100, 200, 500, 800 cells, ~45 min
     python benchmarks/bench_voronoi_resolution.py --cells 100,200,400 --seeds 6
 
 Writes ``benchmarks/VORONOI_RESOLUTION_RESULTS.md`` and ``docs/voronoi_resolution.png``
@@ -59,8 +59,13 @@ def chart(table: dict, default: int, path: Path) -> None:
         ax[0].plot([n] * len(s), s, "o", color="C0", alpha=0.5)
         ax[0].errorbar(n, statistics.mean(s), statistics.stdev(s), fmt="s", color="k", capsize=4)
         ax[1].plot([n] * len(runs), [r["wall_time_s"] for r in runs], "o", color="C1", alpha=0.6)
+    from matplotlib.ticker import NullFormatter
+
+    ticks = sorted(set(table) | {default})
     for a in ax:
         a.set_xscale("log")
+        a.set_xticks(ticks, [str(n) for n in ticks])
+        a.xaxis.set_minor_formatter(NullFormatter())
         a.axvline(default, color="k", ls=":", lw=1)
         a.set_xlabel("Voronoi cells")
     ax[0].set_ylabel("sigma_t = 2 F_max / (pi D T) (MPa)")
@@ -72,9 +77,9 @@ def chart(table: dict, default: int, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cells", default="100,200,500")
+    ap.add_argument("--cells", default="100,200,500,800")
     ap.add_argument("--seeds", type=int, default=6)
-    ap.add_argument("--raw", default=str(ROOT / "benchmarks" / "bonded_acceptance" / "raw"))
+    ap.add_argument("--raw", default=str(ROOT / "benchmarks" / "voronoi_resolution" / "raw"))
     ap.add_argument("--md", default=str(ROOT / "benchmarks" / "VORONOI_RESOLUTION_RESULTS.md"))
     ap.add_argument("--png", default=str(ROOT / "docs" / "voronoi_resolution.png"))
     args = ap.parse_args()
