@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import sys
 import time
@@ -436,7 +437,9 @@ def p_drift(args) -> dict:
     from jaxgran.scenes import bonded_biaxial as bx
 
     seed, p = int(args.seed), _floats(args.pressures)[0]
-    path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}.json"
+    ti = float(args.servo_integral)
+    tag = "" if math.isinf(ti) else f"_pi{ti:g}"
+    path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}{tag}.json"
     rows = json.loads(path.read_text())["runs"] if path.exists() else []
     done = {r["strain_rate"] for r in rows}
     for rate in _floats(args.rates):
@@ -444,7 +447,7 @@ def p_drift(args) -> dict:
             continue
         cfg = dataclasses.replace(
             bx.Config(), n_cells=args.cells, strain_rate=rate, max_strain=args.max_strain,
-            record_every=args.record_every,
+            record_every=args.record_every, servo_integral=ti,
         )  # fmt: skip
         t0 = time.perf_counter()
         shear, iso, setup, _ = bx.isotropic_then_shear(cfg, [seed], (p,))
@@ -484,6 +487,12 @@ def main() -> None:
     )
     ap.add_argument("--rates", default="10,5", help="p-drift: strain rates (1/s)")
     ap.add_argument("--seed", type=int, default=2, help="p-drift: the one seed")
+    ap.add_argument(
+        "--servo-integral",
+        type=float,
+        default=math.inf,
+        help="p-drift: servo integral time in loop time constants (default inf: proportional)",
+    )
     args = ap.parse_args()
     args.cells = args.cells or {"brazilian": 500}.get(args.part, 200)
     _x64()
