@@ -97,6 +97,27 @@ def test_confined_run_ends_on_a_sustained_drop_not_on_a_stick_slip_dip():
     assert track["peaked"]
 
 
+def test_particles_thrown_towards_the_grid_edge_are_taken_out():
+    """A fragment flying off an unconfined specimen is deactivated once it comes within half
+    the grid margin of the grid's edge (the run would otherwise stop on it); nothing else
+    changes."""
+    from jaxgran.scenes import interface_uniaxial as ux
+    from jaxgran.state import replace
+
+    setup = ux.build(dataclasses.replace(ux.Config(), **ux.QUICK))
+    state, grid, guard = setup.state, setup.grid, 0.5 * setup.margin
+    same, out = si.eject_escaping(state, grid, guard)
+    assert out.size == 0 and same is state
+    p = state.particles
+    k = int(np.flatnonzero(np.asarray(p.active))[3])
+    edge = grid.origin[0] + grid.cell_size * grid.nx
+    moved = replace(p, pos=p.pos.at[k].set([edge - 0.4 * guard, float(p.pos[k, 1])]))
+    new, out = si.eject_escaping(replace(state, particles=moved), grid, guard)
+    assert out.tolist() == [k]
+    act0, act1 = np.asarray(p.active), np.asarray(new.particles.active)
+    assert not act1[k] and np.array_equal(np.delete(act1, k), np.delete(act0, k))
+
+
 @pytest.fixture(scope="module")
 def tension(tmp_path_factory):
     """Quick direct tension with both bond models (one compilation: same shapes)."""

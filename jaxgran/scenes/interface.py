@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time as _time
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -460,6 +461,7 @@ class Setup:
     control: object
     spec: Specimen
     material: Material
+    margin: float = 0.0  # m, the grid's margin around the specimen (ejection: see drive)
 
 
 def prepare(spec: Specimen, mat: Material, walls: list[dict], cfg, margin: float, **kw) -> Setup:
@@ -474,19 +476,48 @@ def prepare(spec: Specimen, mat: Material, walls: list[dict], cfg, margin: float
     params = make_run_params(state, mat, dt, skin)
     grid = bd.grid_around([state], margin, skin)
     state = bd.with_pair_capacity(state, bd.fit_pair_capacity([state], skin, headroom=2.0))
-    return Setup(state, params, grid, bd.make_control(state), spec, mat)
+    return Setup(state, params, grid, bd.make_control(state), spec, mat, float(margin))
+
+
+def eject_escaping(state: SimState, grid, guard: float) -> tuple[SimState, np.ndarray]:
+    """Deactivate the particles whose centre is within ``guard`` (m) of the grid's edge:
+    fragments thrown off an unconfined specimen after its failure, which would otherwise
+    leave the grid and stop the run. Returns the state and the slots removed."""
+    p = state.particles
+    pos, act = np.asarray(p.pos), np.asarray(p.active)
+    lo = np.asarray(grid.origin, float)
+    hi = lo + grid.cell_size * np.array([grid.nx, grid.ny], float)
+    near = np.any((pos < lo + guard) | (pos > hi - guard), axis=1)
+    out = np.flatnonzero(act & near)
+    if out.size == 0:
+        return state, out
+    active = jnp.asarray(act).at[out].set(False)
+    vel = p.vel.at[out].set(0.0)
+    omega = p.omega.at[out].set(0.0)
+    return replace(state, particles=replace(p, active=active, vel=vel, omega=omega)), out
 
 
 def drive(setup: Setup, n_steps: int, cfg, callback=None, progress: bool = False, desc: str = ""):
     """Run with :func:`jaxgran.ensemble.drive` (one realisation); a callback
     ``callback(state, records) -> (state, stop)`` runs after each segment. The result's
-    ``segment_wall_times`` (s, host clock after each segment) give the compiled speed."""
+    ``segment_wall_times`` (s, host clock after each segment) give the compiled speed.
+
+    Particles that come within half the grid margin of its edge are taken out after each
+    segment (:func:`eject_escaping`): a fragment thrown off a failing specimen flies on,
+    and a run of an unconfined test would otherwise stop on it. The result's ``ejected``
+    lists ``(time s, slot, mass kg)`` per particle taken out; a warning says how many."""
     from .. import ensemble as ens
 
     stamps = []
+    ejected: list[tuple[float, int, float]] = []
+    guard = 0.5 * setup.margin
 
     def cb(state, rec):
         stamps.append(_time.perf_counter())
+        if guard > 0:
+            state, out = eject_escaping(state, setup.grid, guard)
+            mass = np.asarray(state.particles.mass)
+            ejected.extend((float(state.time), int(k), float(mass[k])) for k in out)
         if callback is None:
             return state, False
         return callback(state, rec)
@@ -504,6 +535,13 @@ def drive(setup: Setup, n_steps: int, cfg, callback=None, progress: bool = False
         desc=desc,
     )
     res.segment_wall_times = stamps
+    res.ejected = ejected
+    if ejected:
+        warnings.warn(
+            f"{desc or 'run'}: {len(ejected)} particle(s) thrown towards the edge of the grid "
+            f"were taken out (first at t = {ejected[0][0]:.4g} s); see run_facts' n_ejected",
+            stacklevel=2,
+        )
     return res
 
 
@@ -720,6 +758,21 @@ def run_facts(res, setup: Setup, cfg) -> dict:
         "dt_s": float(setup.params.dt),
         "steps": int(res.steps),
         "wall_time_s": float(res.wall_time_s),
+        **ejection_facts(res, setup),
+    }
+
+
+def ejection_facts(res, setup: Setup) -> dict:
+    """Particles taken out near the grid's edge (:func:`drive`): count, mass fraction of the
+    specimen and the time of the first (s; nan if none)."""
+    ej = getattr(res, "ejected", [])
+    total = float(
+        np.sum(np.asarray(setup.state.particles.mass)[np.asarray(setup.state.particles.active)])
+    )
+    return {
+        "n_ejected": len(ej),
+        "ejected_mass_fraction": sum(m for _, _, m in ej) / total if total > 0 else 0.0,
+        "first_ejection_time_s": ej[0][0] if ej else math.nan,
     }
 
 
