@@ -539,7 +539,8 @@ def drive(setup: Setup, n_steps: int, cfg, callback=None, progress: bool = False
     if ejected:
         warnings.warn(
             f"{desc or 'run'}: {len(ejected)} particle(s) thrown towards the edge of the grid "
-            f"were taken out (first at t = {ejected[0][0]:.4g} s); see run_facts' n_ejected",
+            f"were taken out (first at t = {ejected[0][0]:.4g} s; the summary counts them "
+            "as n_ejected)",
             stacklevel=2,
         )
     return res

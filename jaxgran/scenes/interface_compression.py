@@ -287,6 +287,7 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
         )
         ures, usetup = ux.simulate_test(ucfg, progress=progress)
         extra["ucs_Pa"] = ux.measure(ures, usetup, ucfg)["ucs_Pa"]
+        extra["unconfined_n_ejected"] = si.ejection_facts(ures, usetup)["n_ejected"]
         s1.append(extra["ucs_Pa"])
         s3.append(0.0)
     if cfg.with_tension:
@@ -296,6 +297,7 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
         tcfg = dataclasses.replace(tcfg, max_strain=0.004, drop_fraction=0.3)
         tres, tsetup = tn.simulate_test(tcfg, progress=progress)
         extra["tensile_strength_Pa"] = tn.measure(tres, tsetup, tcfg)["tensile_strength_Pa"]
+        extra["tension_n_ejected"] = si.ejection_facts(tres, tsetup)["n_ejected"]
         s1.append(0.0)
         s3.append(-extra["tensile_strength_Pa"])
     if "ucs_Pa" in extra and "tensile_strength_Pa" in extra:
@@ -336,7 +338,11 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         "peak_sigma3_Pa": env["sigma3"],
         **{f"envelope_{k}": v for k, v in env["fits"].items()},
         **{f"envelope_peaks_only_{k}": v for k, v in env["fits_peaks"].items()},
-        **{k: v for k, v in env.items() if k.endswith("_Pa") or k.startswith("ucs_over")},
+        **{
+            k: v
+            for k, v in env.items()
+            if k.endswith(("_Pa", "_n_ejected")) or k.startswith("ucs_over")
+        },
         "steps": int(sum(r["steps"] for r in runs)),
         "wall_time_s": float(sum(r["wall_time_s"] for r in runs)),
         "dt_s": float(runs[0]["setup"].params.dt),
