@@ -1,6 +1,7 @@
 """The `jaxgran` command end to end on a small deposit: outputs exist and reopen."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -76,5 +77,6 @@ def test_list_settings_take_any_number_of_values():
     assert cfg.confinements == (10.0e6,)
     cfg = apply_overrides(ic.Config(), {"confinements": "(2e6, 40e6, 80e6)"})
     assert cfg.confinements == (2.0e6, 40.0e6, 80.0e6)
-    with pytest.raises(ValueError, match="confinements='2e6,x'"):
-        apply_overrides(ic.Config(), {"confinements": "2e6,x"})
+    for bad in ("2e6,x", "", "()"):
+        with pytest.raises(ValueError, match=f"confinements='{re.escape(bad)}'"):
+            apply_overrides(ic.Config(), {"confinements": bad})

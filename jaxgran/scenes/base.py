@@ -62,9 +62,11 @@ def _cast(raw: str | Any, current: Any, key: str) -> Any:
 def _cast_tuple(raw: str, current: tuple) -> tuple:
     """``"1e6, 2e6"`` (brackets optional) -> a tuple. A tuple of one element type (every
     tuple setting of the scenes: confinements, pressures, snapshot times) takes any number
-    of values of that type; a mixed tuple needs one value per element."""
+    (at least one) of values of that type; a mixed tuple needs one value per element."""
     body = raw.strip().strip("()[]").strip()
     items = [v.strip() for v in body.split(",") if v.strip()] if body else []
+    if not items:
+        raise ValueError("a list setting needs at least one value")
     kinds = {type(c) for c in current}
     if len(kinds) <= 1:
         kind = kinds.pop() if kinds else (int if all(_is_int(v) for v in items) else float)
