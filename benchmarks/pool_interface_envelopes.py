@@ -1,0 +1,60 @@
+"""Pool the Mohr circles of several `interface-compression` runs (seeds of one bond model)
+and fit the linear Mohr-Coulomb line and the parabola to all of them, and to the real peaks
+only (:func:`jaxgran.scenes.interface.mohr_envelope_fits`):
+
+    for s in 0 1 2; do jaxgran run interface-compression --set bond=interface --set seed=$s \\
+        --out runs/itf_s$s; done
+    python benchmarks/pool_interface_envelopes.py runs/itf_s0 runs/itf_s1 runs/itf_s2
+
+Prints one JSON object: circles, R^2 of both fits on all circles and on the peaks only, and
+per run the UCS, the tensile strength and which confinements peaked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def pool(folders: list[str]) -> dict:
+    from jaxgran.scenes.interface import mohr_envelope_fits
+
+    s1, s3, s1p, s3p, runs = [], [], [], [], []
+    for folder in folders:
+        d = json.loads((Path(folder) / "summary.json").read_text())
+        a, c = d["peak_sigma1_Pa"], d["peak_sigma3_Pa"]
+        per = d["per_confinement"]
+        # confinements first, then the unconfined and tension circles (true peaks)
+        peaked = [r["peaked"] for r in per] + [True] * (len(a) - len(per))
+        s1 += a
+        s3 += c
+        s1p += [x for x, k in zip(a, peaked, strict=True) if k]
+        s3p += [x for x, k in zip(c, peaked, strict=True) if k]
+        runs.append(
+            {
+                "folder": str(folder),
+                "bond": d.get("bond"),
+                "ucs_Pa": d.get("ucs_Pa"),
+                "tensile_strength_Pa": d.get("tensile_strength_Pa"),
+                "peaked": [r["peaked"] for r in per],
+            }
+        )
+    return {
+        "all": mohr_envelope_fits(s1, s3),
+        "peaks_only": mohr_envelope_fits(s1p, s3p),
+        "runs": runs,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+", help="output folders of interface-compression runs")
+    args = ap.parse_args()
+    json.dump(pool(args.folders), sys.stdout, indent=1, default=float)
+    print()
+
+
+if __name__ == "__main__":
+    main()
