@@ -488,7 +488,7 @@ def make_walls(walls: list[dict], dtype=None) -> Walls:
         walls = [wall((0.0, 0.0), (0.0, 1.0))]
         active = np.zeros(1, dtype=bool)
     fd = _float(dtype)
-    col = lambda key: np.stack([np.asarray(w.get(key, _WALL_DEFAULTS.get(key))) for w in walls])
+    col = lambda key: np.stack([np.asarray(w[key]) for w in walls])
     return Walls(
         point=jnp.asarray(col("point"), fd),
         normal=jnp.asarray(col("normal"), fd),
@@ -504,10 +504,6 @@ def make_walls(walls: list[dict], dtype=None) -> Walls:
         servo_time=jnp.asarray(col("servo_time"), fd),
         servo_integral=jnp.zeros(len(walls), fd),
     )
-
-
-# fields a wall description may leave out (descriptions written before they existed)
-_WALL_DEFAULTS = {"servo_time": np.inf}
 
 
 def box_walls(lower, upper, *, top: bool = True) -> list[dict]:

@@ -516,8 +516,9 @@ def drive(setup: Setup, n_steps: int, cfg, callback=None, progress: bool = False
         stamps.append(_time.perf_counter())
         if guard > 0:
             state, out = eject_escaping(state, setup.grid, guard)
-            mass = np.asarray(state.particles.mass)
-            ejected.extend((float(state.time), int(k), float(mass[k])) for k in out)
+            if out.size:
+                mass = np.asarray(state.particles.mass)
+                ejected.extend((float(state.time), int(k), float(mass[k])) for k in out)
         if callback is None:
             return state, False
         return callback(state, rec)
