@@ -12,7 +12,9 @@ erosion clips where a neighbour overlaps the parent. The variants, on the mid-si
 * ``merge, r = 0.5 mm``: and the scene's present sphero-radius;
 * ``merge, r = 0.5 mm, no erosion``: the corner rounding alone (fragments keep overlaps);
 * ``merge, r = 0.5 mm, conserve``: density compensation (`conserve_mass=True`): the area
-  is lost, the mass is not.
+  is lost, the mass is not;
+* ``merge, r = 0.25 mm`` and ``r = 0.15 mm``: smaller sphero-radii (the rounding scales as
+  ``r^2``).
 
     python benchmarks/bench_mass_loss.py                # 5 variants x seeds 0, 1, 2
     python benchmarks/bench_mass_loss.py --seeds 0 --variants merge-r05
@@ -53,6 +55,10 @@ VARIANTS = {
         "sphero_radius": 0.5e-3,
         "conserve_mass": True,
     },
+    # smaller sphero-radii: the corner rounding scales as r^2; the contact law takes cores
+    # that cross (closest-feature normals), so r may be below the overlap at peak load
+    "merge-r025": {"small_pieces": "merge", "sphero_radius": 0.25e-3},
+    "merge-r015": {"small_pieces": "merge", "sphero_radius": 0.15e-3},
 }
 
 
@@ -94,6 +100,11 @@ def main() -> None:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--md", default=str(ROOT / "benchmarks" / "MASS_LOSS_RESULTS.md"))
     ap.add_argument("--replot", action="store_true", help="rewrite the table from the JSON")
+    ap.add_argument(
+        "--add",
+        action="store_true",
+        help="run only --variants and keep the other variants' rows of the JSON",
+    )
     args = ap.parse_args()
 
     import jax
@@ -105,10 +116,14 @@ def main() -> None:
     if args.replot:
         rows = json.loads(store.read_text())
     else:
+        today = datetime.date.today().isoformat()
         rows = []
+        if args.add and store.exists():
+            rows = [r for r in json.loads(store.read_text()) if r["variant"] not in variants]
         for v in variants:
             for s in seeds:
                 r = one(v, s)
+                r["date"], r["machine"] = today, f"{cpu_name()} ({os.cpu_count()} cores)"
                 print(json.dumps(r), flush=True)
                 rows.append(r)
                 store.write_text(json.dumps(rows, indent=1))  # after every run
@@ -117,14 +132,20 @@ def main() -> None:
         cmd += f" --seeds {args.seeds}"
     if variants != list(VARIANTS):
         cmd += f" --variants {','.join(variants)}"
+    if args.add:
+        cmd += " --add"
+    shown = [v for v in VARIANTS if any(r["variant"] == v for r in rows)]
+    dates = sorted({r.get("date", "2026-12-02") for r in rows})
+    machines = sorted({r.get("machine", "Intel(R) Xeon(R) Processor (2 cores)") for r in rows})
     base = {k: v for k, v in MID.items() if k not in ("sphero_radius", "small_pieces")}
     lines = [
         "# Mass lost by breakage in the Cantor oedometer",
         "",
-        f"`{cmd}` on {cpu_name()} ({os.cpu_count()} cores), jax {jax.__version__} on the "
-        f"CPU, float64, {datetime.date.today().isoformat()}. Scene: `oedometer-cantor` (DSM) "
+        f"`{cmd}` on {', '.join(machines)}, jax {jax.__version__} on the "
+        f"CPU, float64, {', '.join(dates)} (each row's date in the JSON). Scene: "
+        "`oedometer-cantor` (DSM) "
         f"with {json.dumps(base)} and per variant: "
-        + "; ".join(f"`{k}` {json.dumps(v)}" for k, v in VARIANTS.items() if k in variants)
+        + "; ".join(f"`{k}` {json.dumps(v)}" for k, v in VARIANTS.items() if k in shown)
         + ". Percentages of the initial mass (area for `area lost`); `per event`: area "
         "lost by one replacement as a percentage of its parent's area. Suppressed: breakage "
         "decisions whose pieces all merged back (the particle is left whole; the check "
@@ -149,7 +170,7 @@ def main() -> None:
         "(mean) | per event, mean % of parent (all events) |",
         "|---|---|---|---|---|---|---|",
     ]
-    for v in variants:
+    for v in shown:
         sel = [r for r in rows if r["variant"] == v]
         per = [x for r in sel for x in r["area_lost_per_event_pct_of_parent"]]
         lines.append(
