@@ -222,6 +222,13 @@ CANTILEVER_CASES["matched_slender_straight_clamp"] = {
     **CANTILEVER_CASES["matched_slender"],
     "clamp": "straight",
 }
+# the matched beam at L / s = 15, same cell size (733 cells): the clamp's root rotation
+# falls as s / L and the shear deflection as (s / L)^2 relative to the bending
+CANTILEVER_CASES["matched_slender15"] = {
+    **CANTILEVER_CASES["matched_slender"],
+    "length": 0.75,
+    "n_cells": 733,
+}
 
 
 def cantilever(args) -> dict:

@@ -31,7 +31,14 @@ def _listener(event, duration, **kwargs):
         _compiles.append(str(kwargs.get("fun_name", "?")))
 
 
+def _hit_listener(event, **kwargs):
+    # a compilation served by the persistent cache (tests/conftest.py) is a compilation too
+    if event == "/jax/compilation_cache/cache_hits":
+        _compiles.append("persistent cache hit")
+
+
 monitoring.register_event_duration_secs_listener(_listener)
+monitoring.register_event_listener(_hit_listener)
 
 
 # ----------------------------------------------------------------------------- calibration
