@@ -16,7 +16,7 @@ erosion clips where a neighbour overlaps the parent. The variants, on the mid-si
 * ``merge, r = 0.25 mm`` and ``r = 0.15 mm``: smaller sphero-radii (the rounding scales as
   ``r^2``).
 
-    python benchmarks/bench_mass_loss.py                # 5 variants x seeds 0, 1, 2
+    python benchmarks/bench_mass_loss.py                # every variant x seeds 0, 1, 2
     python benchmarks/bench_mass_loss.py --seeds 0 --variants merge-r05
 
 Writes ``benchmarks/MASS_LOSS_RESULTS.md`` (and the per-run numbers as JSON next to it).

@@ -7,7 +7,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # Compiled executables go to a cache on disk that the xdist workers, the notebook kernels
 # (tests/test_notebooks.py passes the environment on) and later runs share: the modules
 # below drop their in-memory executables (see _release_compiled_code) and several compile
-# the same segments, which then load from disk (the suite runs about a fifth faster on a
+# the same segments, which then load from disk (the suite runs about a quarter faster on a
 # clean checkout, more on a warm one). Tests that count compilations count cache hits too.
 # Set JAX_COMPILATION_CACHE_DIR to move it, or JAX_ENABLE_COMPILATION_CACHE=false to turn
 # it off; `pytest --cache-clear` empties it with the rest of .pytest_cache.
