@@ -135,8 +135,8 @@ def main() -> None:
     if args.add:
         cmd += " --add"
     shown = [v for v in VARIANTS if any(r["variant"] == v for r in rows)]
-    dates = sorted({r.get("date", "2026-12-02") for r in rows})
-    machines = sorted({r.get("machine", "Intel(R) Xeon(R) Processor (2 cores)") for r in rows})
+    dates = sorted({r["date"] for r in rows})
+    machines = sorted({r["machine"] for r in rows})
     base = {k: v for k, v in MID.items() if k not in ("sphero_radius", "small_pieces")}
     lines = [
         "# Mass lost by breakage in the Cantor oedometer",
