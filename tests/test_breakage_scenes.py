@@ -134,3 +134,10 @@ def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
     assert s["dt_final_s"] <= s["dt_s"]
     segment = cfg.record_every * cfg.records_per_segment * s["dt_s"]
     assert abs(s["load_time_s"] - cfg.load_time) <= segment
+
+
+@pytest.mark.parametrize("floor", [-0.1, 1.5, float("nan")])
+def test_oedometer_rejects_a_bad_fragment_radius_floor_before_settling(floor):
+    cfg = dataclasses.replace(oc.Config(), fragment_radius_floor=floor)
+    with pytest.raises(ValueError, match="fragment_radius_floor"):
+        oc.simulate_test(cfg)

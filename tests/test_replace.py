@@ -112,6 +112,73 @@ def test_erosion_by_the_overlap_is_exact_and_areas_add_up():
     assert ev["eroded_mass"] == pytest.approx(ev["parent_mass"] - 2 * expected, rel=1e-12)
 
 
+def _sliver_cut(state, angle):
+    """Pieces of the square's outline cut by a line that leaves the right face at its lower
+    end at ``angle`` (rad) to it: a sliver between the line and the face, and the rest."""
+    x0, y0 = A / 2 + R, -A / 2
+    d = np.array([-math.sin(angle), math.cos(angle)])
+    start = np.array([x0, y0]) - 0.1 * d
+    return _cut(state, 0, [[start, start + 0.2 * d]])
+
+
+def _fragments(state, ev):
+    p = state.particles
+    out = []
+    for s in ev["fragment_slots"]:
+        core = _world_core(state, int(s))
+        out.append((core, float(p.radius[s])))
+    return out
+
+
+def test_adaptive_fragment_radius_keeps_the_tip_of_a_sliver():
+    """A plane at a = 20 deg to a face cuts a sliver whose core tip recedes r / sin(a / 2)
+    under the parent's radius: the fragment loses 6 % of the sliver, about
+    r^2 (1 / tan(a / 2) - (pi - a) / 2) at the tip. With ``min_radius``
+    the sliver takes the largest radius that keeps 99.9 % of its piece (a 1 % larger one
+    keeps less), the other piece keeps the parent's, every fragment lies inside its piece
+    and the masses add up."""
+    a = math.radians(20.0)
+    plain_state = _state([_square()], capacity=2)
+    pieces = _sliver_cut(plain_state, a)
+    piece_area = sorted(abs(geo.polygon_area(q)) for q in pieces)
+    plain_state, plain = replace_particle(plain_state, 0, pieces, overlap=0.0, clearance=0.0)
+    frag_area = sorted(plain["fragment_areas"])
+    assert 1.0 - frag_area[0] / piece_area[0] > 0.05  # the sliver's tip is lost
+
+    state = _state([_square()], capacity=2)
+    pieces = _sliver_cut(state, a)
+    state, ev = replace_particle(state, 0, pieces, overlap=0.0, clearance=0.0, min_radius=R / 10)
+    radii = ev["fragment_radii"]
+    order = np.argsort(ev["fragment_areas"])
+    assert R / 10 < radii[order[0]] < R and radii[order[1]] == R
+    assert ev["area_lost"] < 0.2 * plain["area_lost"]
+    total = ev["fragment_masses"].sum() + ev["fines_mass"] + ev["eroded_mass"]
+    assert total == pytest.approx(ev["parent_mass"], rel=1e-14)
+    by_piece = {}
+    for core, r in _fragments(state, ev):
+        c = core.mean(axis=0)
+        q = next(q for q in pieces if geo.point_in_convex_polygon(c, q)[0])
+        by_piece[id(q)] = (core, r, q)
+    assert len(by_piece) == 2
+    for core, r, q in by_piece.values():
+        kept = geo.spheropolygon_mass_properties(core, r, 1.0)[0]
+        assert kept >= (1 - 1e-3) * abs(geo.polygon_area(q)) * (1 - 1e-9)
+        outline = geo.spheropolygon_outline(core, r, n_arc=64)
+        assert geo.point_in_convex_polygon(outline, q, tol=1e-12).all()
+        if r < R:  # the largest such radius: 1 % more keeps less than 99.9 %
+            bigger = geo.offset_polygon(q, 1.01 * r)
+            kept_b = geo.spheropolygon_mass_properties(bigger, 1.01 * r, 1.0)[0]
+            assert kept_b < (1 - 1e-3) * abs(geo.polygon_area(q))
+    assert np.asarray(state.particles.radius)[ev["fragment_slots"]].tolist() == radii.tolist()
+
+
+@pytest.mark.parametrize("bad", [0.0, -1e-4, float("nan")])
+def test_adaptive_fragment_radius_needs_a_positive_floor(bad):
+    state = _state([_square()], capacity=2)
+    with pytest.raises(ValueError, match="min_radius"):
+        replace_particle(state, 0, _cut(state, 0, [[[0, -1], [0, 1]]]), min_radius=bad)
+
+
 def test_density_compensation_keeps_the_mass_of_each_piece():
     """conserve_mass: the square cut in half and eroded keeps half the parent's mass in
     each fragment (density raised by the eroded fraction); the area lost is the same as

@@ -161,8 +161,8 @@ class AveragedStressBreakage(DsmBreakage):
         eps: DSM threshold (Pa) used only by the screening; None: ``calibrate_eps`` of the
             same calibration.
         thickness, poisson_ratio, plane, screen_fraction, min_area, mean_initial_mass,
-        max_contacts, n_arc, max_events, erosion, small_pieces, conserve_mass: as in
-        :class:`DsmBreakage`.
+        max_contacts, n_arc, max_events, erosion, small_pieces, conserve_mass, min_radius: as
+        in :class:`DsmBreakage`.
     """
 
     def __init__(
@@ -190,6 +190,7 @@ class AveragedStressBreakage(DsmBreakage):
         erosion: str = "local",
         small_pieces: str = "merge",
         conserve_mass: bool = False,
+        min_radius: float | None = None,
     ) -> None:
         if method not in AVERAGED_METHODS:
             raise ValueError(f"method must be one of {AVERAGED_METHODS}, got {method!r}")
@@ -218,6 +219,7 @@ class AveragedStressBreakage(DsmBreakage):
             erosion=erosion,
             small_pieces=small_pieces,
             conserve_mass=conserve_mass,
+            min_radius=min_radius,
         )
         cal = calibrate_strengths(calibration_force, calibration_radius, t)
         self.method = method
@@ -337,6 +339,7 @@ def make_breakage(
     erosion: str = "local",
     small_pieces: str = "merge",
     conserve_mass: bool = False,
+    min_radius: float | None = None,
 ) -> DsmBreakage:
     """Breakage callback for ``--method``: ``"dsm"`` gives a :class:`DsmBreakage` with
     ``eps = calibrate_eps(F, R)``, the others an :class:`AveragedStressBreakage` with
@@ -344,7 +347,8 @@ def make_breakage(
     Extra keyword arguments per family go in ``dsm_options`` / ``averaged_options``;
     ``erosion`` (``"local"``, ``"uniform"``, ``"none"``) is the fragments' erosion and
     ``small_pieces`` (``"merge"``, ``"fines"``) the fate of pieces below ``min_area`` and
-    ``conserve_mass`` the density compensation of the erosion, for all."""
+    ``conserve_mass`` the density compensation of the erosion and ``min_radius`` the floor
+    (m) of the adaptive fragment radius (None: fragments keep the parent's), for all."""
     t = float(params.thickness if thickness is None else thickness)
     common = dict(
         poisson_ratio=poisson_ratio,
@@ -355,6 +359,7 @@ def make_breakage(
         erosion=erosion,
         small_pieces=small_pieces,
         conserve_mass=conserve_mass,
+        min_radius=min_radius,
     )
     if method == "dsm":
         eps = calibrate_eps(

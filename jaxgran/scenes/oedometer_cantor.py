@@ -109,6 +109,10 @@ class Config:
     small_pieces: str = "merge"
     # fragments keep their uneroded piece's mass (density compensation, paper 000 §III)
     conserve_mass: bool = False
+    # floor of the fragments' adaptive sphero-radius, a fraction of sphero_radius: each
+    # fragment takes the largest radius between it and its parent's whose corner rounding
+    # keeps 99.9 % of its piece (slivers keep their tips); 0: fragments keep the parent's
+    fragment_radius_floor: float = 0.0
     # particle slots at the start, as a multiple of n_particles: fragments fill free slots,
     # and each growth of the capacity recompiles the jitted segment and the DSM's kernels
     # (inactive slots cost next to nothing per step)
@@ -233,6 +237,7 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
     ``energy_ledger``: attach a :mod:`jaxgran.energy` ledger when the loading starts, book
     what each replacement removes (:func:`jaxgran.energy.account_host_change`) and return
     the balance after every segment in ``info["energy"]`` (a list of dicts, J)."""
+    _min_radius(cfg)  # a bad floor fails here, not after the settling
     state, params, grid = (build_fn or build)(cfg)
     dt = float(params.dt)
     peak = [0.0]
@@ -280,6 +285,7 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
         erosion=cfg.erosion,
         small_pieces=cfg.small_pieces,
         conserve_mass=cfg.conserve_mass,
+        min_radius=_min_radius(cfg),
     )
     t0 = float(s0.time)
     targets = sorted(cfg.snapshot_times)
@@ -339,6 +345,14 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
     if energy_ledger:
         info["energy"] = balances
     return settle, load, brk, info
+
+
+def _min_radius(cfg) -> float | None:
+    """Floor (m) of the fragments' adaptive sphero-radius, None when they keep the parent's."""
+    f = float(getattr(cfg, "fragment_radius_floor", 0.0))
+    if not (math.isfinite(f) and 0.0 <= f <= 1.0):
+        raise ValueError(f"fragment_radius_floor must be in [0, 1], got {f}")
+    return None if f == 0.0 else f * cfg.sphero_radius
 
 
 def _total_area(p) -> float:
@@ -416,6 +430,7 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "mass_eroded_fraction": sum(float(e["eroded_mass"]) for e in ev) / mass0,
         "small_pieces": cfg.small_pieces,
         "conserve_mass": cfg.conserve_mass,
+        "fragment_radius_floor": cfg.fragment_radius_floor,
         "area_lost_fraction": sum(float(e["area_lost"]) for e in ev) / info["initial_area"],
         "n_pieces_merged": int(sum(int(e.get("n_merged", 0)) for e in ev)),
         "n_suppressed": len(getattr(brk, "suppressed", [])),

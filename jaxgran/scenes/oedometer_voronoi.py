@@ -79,6 +79,7 @@ class Config:
     erosion: str = "local"  # fragments' erosion: local, local-axis, uniform, none
     small_pieces: str = "merge"  # pieces below min_fragment_fraction: merge or fines
     conserve_mass: bool = False  # density compensation of the erosion
+    fragment_radius_floor: float = 0.0  # adaptive fragment radius floor / sphero_radius
     capacity_factor: float = 2.0  # particle slots at the start / n_cells (growth recompiles)
     seed: int = 0
 
