@@ -185,4 +185,9 @@ def sweeps_figure(brazil: dict, path: Path) -> Path:
     a2.set_ylabel("S / K_n (1/m)")
     a2.legend(fontsize=7)
     a2.grid(True, alpha=0.3)
+    for ax, ticks in ((a1, t["ratios_b_n_over_b_t"]), (a2, s["ratios_k_n_over_k_t"])):
+        ax.set_xticks(ticks, [f"{v:g}" for v in ticks])  # the swept values, not 10^k labels
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())
+    if "n_cells" in brazil:
+        fig.suptitle(f"bonded Brazilian disc, {brazil['n_cells']} cells", fontsize=9)
     return _save(fig, path)
