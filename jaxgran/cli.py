@@ -1,6 +1,7 @@
 """The ``jaxgran`` command: run a scene, redraw figures, print environment information.
 
 jaxgran run deposit [--out DIR] [--set key=value ...] [--quick] [--vtk] [--no-progress]
+jaxgran run oedometer-voronoi --out DIR --resume   (continue an interrupted long run)
 jaxgran plot runs/deposit/run.h5 [--out DIR]
 jaxgran info
 jaxgran scenes
@@ -38,6 +39,17 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("--vtk", action="store_true", help="also write VTK files for ParaView")
     run_p.add_argument("--no-progress", action="store_true", help="no progress bar")
     run_p.add_argument("--float32", action="store_true", help="run in float32 (default float64)")
+    run_p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from OUT/checkpoint.pkl of an interrupted run (long scenes only)",
+    )
+    run_p.add_argument(
+        "--checkpoint-minutes",
+        type=float,
+        default=None,
+        help="save OUT/checkpoint.pkl this often during a long scene (default 10; 0: never)",
+    )
 
     plot_p = sub.add_parser("plot", help="redraw the figures of a run.h5")
     plot_p.add_argument("path", type=Path)
@@ -103,7 +115,23 @@ def _run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = args.out or Path("runs") / args.scene
-    summary = mod.run(cfg, out, progress=not args.no_progress, vtk=args.vtk)
+    extra = {}
+    if args.resume or args.checkpoint_minutes is not None:
+        import inspect
+
+        if "resume" not in inspect.signature(mod.run).parameters:
+            print(f"error: scene {args.scene!r} has no checkpoints", file=sys.stderr)
+            return 2
+        extra["resume"] = args.resume
+        if args.checkpoint_minutes is not None:
+            extra["checkpoint_minutes"] = args.checkpoint_minutes
+    try:
+        summary = mod.run(cfg, out, progress=not args.no_progress, vtk=args.vtk, **extra)
+    except ValueError as exc:
+        if "checkpoint" not in str(exc):
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(dumps(summary))
     print(f"outputs in {out}/")
     return 0

@@ -773,3 +773,48 @@ def write_vtk(
             f"  <Collection>\n{rows}\n  </Collection>\n</VTKFile>\n"
         )
     return written + [coll]
+
+
+# ---------------------------------------------------------------------------------------------
+# checkpoints of long runs
+# ---------------------------------------------------------------------------------------------
+
+CHECKPOINT_FORMAT = 1
+
+
+def save_checkpoint(path: str | os.PathLike, key: Any, payload: Any) -> None:
+    """Pickle ``payload`` (states, a breakage handler, lists of records...) to ``path``
+    atomically (a partial file never replaces a good one), tagged with ``key`` (e.g. the
+    scene's configuration) so that :func:`load_checkpoint` refuses another run's file.
+    JAX arrays are stored as NumPy arrays and come back as JAX arrays of the same dtype."""
+    import pickle
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "wb") as fh:
+        pickle.dump(
+            {"format": CHECKPOINT_FORMAT, "key": key, "payload": payload},
+            fh,
+            protocol=pickle.HIGHEST_PROTOCOL,
+        )
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike, key: Any) -> Any:
+    """The payload saved by :func:`save_checkpoint` at ``path``. Raises ``ValueError`` if
+    the file was written by another format version or for another ``key`` (a checkpoint of
+    a run with other settings must not be continued silently). Only load files you wrote:
+    this unpickles."""
+    import pickle
+
+    with open(path, "rb") as fh:
+        blob = pickle.load(fh)
+    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a jaxgran checkpoint of format {CHECKPOINT_FORMAT}")
+    if blob["key"] != key:
+        raise ValueError(
+            f"{path}: the checkpoint belongs to a run with other settings; delete it or run "
+            "without resume"
+        )
+    return blob["payload"]

@@ -215,6 +215,9 @@ def simulate(
     max_regrows: int = 8,
     prepared: bool = False,
     desc: str = "simulate",
+    checkpoint: Callable[[dict], None] | None = None,
+    checkpoint_every_s: float = 600.0,
+    resume: dict | None = None,
 ) -> RunResult:
     """Run ``n_steps`` steps (rounded up to whole segments) with host checks between segments.
 
@@ -230,6 +233,18 @@ def simulate(
             used from the next segment on, without recompiling. ``RunResult.params`` holds
             the last ones.
         prepared: the state already carries a pair list and forces (skip :func:`prepare`).
+        checkpoint: ``checkpoint(payload)`` is called after a segment's callback once
+            ``checkpoint_every_s`` seconds (wall clock) have passed since the start or the
+            last call; ``payload`` holds what ``resume`` needs (``state``, ``params``,
+            ``grid``, ``series``, ``frames``, ``segment``, ``done``, ``regrows``, the wall
+            time so far). The caller
+            saves it with whatever its callback needs (e.g. a pickle, see
+            :func:`jaxgran.io.save_checkpoint`).
+        resume: a ``payload`` given to ``checkpoint`` by an earlier call with the same
+            ``n_steps`` and segment length: the run continues from it (its ``state``,
+            ``params`` and ``grid`` replace the arguments) and returns what the uninterrupted
+            run would have returned. Must be used with the same callback state as when it
+            was saved.
     """
     from tqdm.auto import tqdm
 
@@ -237,16 +252,30 @@ def simulate(
     n_seg = max(1, -(-int(n_steps) // seg_steps))
     t0 = _time.perf_counter()
     regrows: list[str] = []
-    if not prepared:
-        state, err = prepare(state, params, grid)
-        state, grid, err = _grow_until_ok(state, params, grid, int(err), regrows, max_regrows)
-        _fatal(err, state)
     series: dict[str, list] = {}
-    frames = [frame_of(state, params)]
+    first, done, wall_before = 0, 0, 0.0
+    if resume is not None:
+        if int(resume["n_seg"]) != n_seg or int(resume["seg_steps"]) != seg_steps:
+            raise ValueError(
+                f"resume: the checkpoint was taken in a run of {resume['n_seg']} segments of "
+                f"{resume['seg_steps']} steps, this run has {n_seg} of {seg_steps}"
+            )
+        state, params, grid = resume["state"], resume["params"], resume["grid"]
+        regrows = list(resume["regrows"])
+        series = {k: list(v) for k, v in resume["series"].items()}
+        frames = list(resume["frames"])
+        first, done = int(resume["segment"]), int(resume["done"])
+        wall_before = float(resume["wall_time_s"])
+    else:
+        if not prepared:
+            state, err = prepare(state, params, grid)
+            state, grid, err = _grow_until_ok(state, params, grid, int(err), regrows, max_regrows)
+            _fatal(err, state)
+        frames = [frame_of(state, params)]
     stopped = False
-    bar = tqdm(total=n_seg * seg_steps, desc=desc, disable=not progress, unit="step")
-    done = 0
-    for k in range(n_seg):
+    bar = tqdm(total=n_seg * seg_steps, initial=done, desc=desc, disable=not progress, unit="step")
+    t_saved = _time.perf_counter()
+    for k in range(first, n_seg):
         start = state
         tries = 0
         while True:
@@ -281,6 +310,25 @@ def simulate(
                 if (k + 1) % frame_every != 0:
                     frames.append(frame_of(state, params))
                 break
+        if checkpoint is not None and k + 1 < n_seg:
+            now = _time.perf_counter()
+            if now - t_saved >= checkpoint_every_s:
+                checkpoint(
+                    {
+                        "state": state,
+                        "params": params,
+                        "grid": grid,
+                        "series": series,
+                        "frames": frames,
+                        "segment": k + 1,
+                        "done": done,
+                        "regrows": regrows,
+                        "n_seg": n_seg,
+                        "seg_steps": seg_steps,
+                        "wall_time_s": wall_before + now - t0,
+                    }
+                )
+                t_saved = _time.perf_counter()
     bar.close()
     jax.block_until_ready(state)
     out = {k: np.concatenate(v, axis=0) for k, v in series.items()}
@@ -290,7 +338,7 @@ def simulate(
         frames=frames,
         grid=grid,
         steps=done,
-        wall_time_s=_time.perf_counter() - t0,
+        wall_time_s=wall_before + _time.perf_counter() - t0,
         regrows=regrows,
         stopped_early=stopped,
         params=params,

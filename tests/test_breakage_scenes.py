@@ -9,6 +9,7 @@ import jax
 import numpy as np
 import pytest
 
+from jaxgran import io
 from jaxgran.breakage import metrics
 from jaxgran.scenes import brazilian_dsm as bd
 from jaxgran.scenes import breakage_types as bt
@@ -86,10 +87,32 @@ def test_scene_time_steps_are_strongly_typed():
         assert params.dt.dtype == params.normal_stiffness.dtype
 
 
-def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
-    cfg = dataclasses.replace(oc.Config(), **oc.QUICK, method="split-cell")
-    with compiles_of("run_segment") as compiled:
-        settle, load, brk, info = oc.simulate_test(cfg)
+QUICK_SPLIT = dataclasses.replace(oc.Config(), **oc.QUICK, method="split-cell")
+
+
+@pytest.fixture(scope="module")
+def quick_split(tmp_path_factory):
+    """The quick Cantor oedometer (split-cell), checkpointed after every segment: the run,
+    the compilations of its segment, and the bytes of every checkpoint written."""
+    path = tmp_path_factory.mktemp("checkpoint") / "checkpoint.pkl"
+    saved = []
+    real = io.save_checkpoint
+
+    def keep(*args):
+        real(*args)
+        saved.append(path.read_bytes())
+
+    with contextlib.ExitStack() as stack:
+        mp = stack.enter_context(pytest.MonkeyPatch.context())
+        mp.setattr(io, "save_checkpoint", keep)
+        compiled = stack.enter_context(compiles_of("run_segment"))
+        run = oc.simulate_test(QUICK_SPLIT, checkpoint=path, checkpoint_every_s=0.0)
+    return run, list(compiled), saved, path
+
+
+def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside(quick_split):
+    cfg = QUICK_SPLIT
+    (settle, load, brk, info), compiled, _, _ = quick_split
     # breakage and the adaptive time step never recompile the segment; a capacity growth
     # (logged in the event) may, once per growth
     growths = sum("capacity_growth" in e for e in brk.events)
@@ -134,6 +157,38 @@ def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside():
     assert s["dt_final_s"] <= s["dt_s"]
     segment = cfg.record_every * cfg.records_per_segment * s["dt_s"]
     assert abs(s["load_time_s"] - cfg.load_time) <= segment
+
+
+def test_an_interrupted_oedometer_resumes_to_the_same_run(quick_split, tmp_path):
+    (_, load, brk, info), _, saved, path = quick_split
+    n_final = len(brk.events)
+    assert n_final >= 1 and len(saved) >= 3
+    # the last checkpoint with a breakage still to come (so that the resumed run breaks)
+    events_at = []
+    for blob in saved:
+        path.write_bytes(blob)
+        ctx = io.load_checkpoint(path, oc.checkpoint_key(QUICK_SPLIT))["context"]
+        events_at.append(len(ctx["brk"].events))
+    pick = max(i for i, n in enumerate(events_at) if n < n_final)
+    path.write_bytes(saved[pick])
+    settle2, load2, brk2, info2 = oc.simulate_test(
+        QUICK_SPLIT, checkpoint=path, checkpoint_every_s=1e9, resume=True
+    )
+    # CPU runs are deterministic: the resumed run is the uninterrupted one, bit for bit
+    p, p2 = load.state.particles, load2.state.particles
+    for name in ("pos", "vel", "angle", "omega", "mass", "verts", "uid", "active"):
+        np.testing.assert_array_equal(np.asarray(getattr(p2, name)), np.asarray(getattr(p, name)))
+    assert load2.steps == load.steps and load2.state.step == load.state.step
+    for key, val in load.series.items():
+        np.testing.assert_array_equal(load2.series[key], val)
+    assert [e["time"] for e in brk2.events] == [e["time"] for e in brk.events]
+    assert [e["parent_uid"] for e in brk2.events] == [e["parent_uid"] for e in brk.events]
+    assert [s["t_load"] for s in info2["snapshots"]] == [s["t_load"] for s in info["snapshots"]]
+    assert info2["dt_log"] == info["dt_log"]
+    # a checkpoint of other settings is refused before anything runs
+    other = dataclasses.replace(QUICK_SPLIT, seed=QUICK_SPLIT.seed + 1)
+    with pytest.raises(ValueError, match="other settings"):
+        oc.simulate_test(other, checkpoint=path, resume=True)
 
 
 @pytest.mark.parametrize("floor", [-0.1, 1.5, float("nan")])

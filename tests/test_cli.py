@@ -67,6 +67,14 @@ def test_bad_setting_is_refused(capsys):
     assert main(["run", "no-such-scene"]) == 2
 
 
+def test_resume_is_refused_where_a_scene_has_no_checkpoints(capsys):
+    assert main(["run", "deposit", "--resume"]) == 2
+    assert "no checkpoints" in capsys.readouterr().err
+    # a negative interval is refused before the (long) oedometer builds anything
+    assert main(["run", "oedometer-voronoi", "--checkpoint-minutes", "-1"]) == 2
+    assert "checkpoint_minutes" in capsys.readouterr().err
+
+
 def test_list_settings_take_any_number_of_values():
     """A list setting (confinements, snapshot times) is read with any number of values of its
     element type, brackets optional; a value of the wrong type is an error naming it."""

@@ -3,6 +3,7 @@ platens (critical force, fracture plane, halves), and no recompiles across break
 
 import dataclasses
 import math
+import pickle
 
 import jax
 import jax.numpy as jnp
@@ -119,6 +120,16 @@ def test_screening_and_criterion_bracket_the_critical_load(quick_run):
         assert bool(decisions) == breaks
         # psi at the saddle is the Brazilian centre value k F / (pi R t), within 0.5 %
         assert dsm.last_saddle[uid] == pytest.approx(ratio * dsm.eps, rel=5e-3)
+    # a pickled handler (a checkpoint) drops its per-shape operators and screening tables,
+    # rebuilds them on demand and decides exactly as before
+    assert dsm._cache and dsm._bound_rows
+    again = pickle.loads(pickle.dumps(dsm))
+    assert not again._cache and not again._bound_rows and again._bound_stack is None
+    redo = again.check(state)
+    assert len(redo) == len(decisions) == 1
+    for a, b in zip(redo, decisions, strict=True):
+        assert a.slot == b.slot
+        np.testing.assert_array_equal(np.asarray(a.planes), np.asarray(b.planes))
 
 
 def test_disc_between_platens_splits_in_halves_at_the_predicted_load(quick_run):

@@ -508,6 +508,24 @@ class DsmBreakage:
         self._bound_uid = np.zeros(0, np.int64)
         self.n_screened = 0  # particles that passed the screening, summed over calls
 
+    # per-shape operators and screening tables: rebuilt on demand, so a pickled handler
+    # (a checkpoint of a long run, jaxgran.io.save_checkpoint) leaves them out
+    _REBUILT = ("_cache", "_ops_static", "_bound_rows", "_bound_stack", "_bound_uid")
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        for name in self._REBUILT:
+            state.pop(name, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._cache = OrderedDict()
+        self._ops_static = None
+        self._bound_rows = {}
+        self._bound_stack = None
+        self._bound_uid = np.zeros(0, np.int64)
+
     # -------------------------------------------------------------- public entry points
 
     def critical_load(self, radius: float) -> float:

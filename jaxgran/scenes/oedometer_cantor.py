@@ -228,7 +228,16 @@ def _pile_top(state) -> float:
     return float((y.max(axis=1) + np.asarray(p.radius)[act]).max())
 
 
-def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: bool = False):
+def simulate_test(
+    cfg,
+    *,
+    progress: bool = False,
+    build_fn=None,
+    energy_ledger: bool = False,
+    checkpoint: str | Path | None = None,
+    checkpoint_every_s: float = 600.0,
+    resume: bool = False,
+):
     """Settle, then load with breakage. Returns ``(settle_result, load_result, breakage,
     info)``; ``info`` holds snapshots, the initial mass and timing. ``build_fn(cfg) ->
     (state, params, grid)`` (default :func:`build`) must put the top bar last among the walls;
@@ -236,8 +245,123 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
 
     ``energy_ledger``: attach a :mod:`jaxgran.energy` ledger when the loading starts, book
     what each replacement removes (:func:`jaxgran.energy.account_host_change`) and return
-    the balance after every segment in ``info["energy"]`` (a list of dicts, J)."""
+    the balance after every segment in ``info["energy"]`` (a list of dicts, J).
+
+    ``checkpoint``: a file (pickle) that receives everything the loading needs to go on
+    (state, breakage handler with its event log, snapshots, series so far) every
+    ``checkpoint_every_s`` seconds of wall time during the loading; with ``resume`` an
+    existing file of the same configuration is continued from
+    (:func:`jaxgran.io.load_checkpoint`), and the result is that of the uninterrupted run.
+    The file is left in place; ``run`` deletes it once the outputs are written."""
     _min_radius(cfg)  # a bad floor fails here, not after the settling
+    key = checkpoint_key(cfg, build_fn)
+    saved = None
+    if resume and checkpoint is not None and Path(checkpoint).exists():
+        from .. import io
+
+        saved = io.load_checkpoint(checkpoint, key)
+    if saved is None:
+        settle, ctx, s0 = _settle_and_arm(cfg, build_fn, progress, energy_ledger)
+    else:
+        settle, ctx, s0 = saved["settle"], saved["context"], None
+    brk, t0, m_mean = ctx["brk"], ctx["t0"], ctx["m_mean"]
+
+    def step_callback(s, rec):
+        before = s
+        s, stop = brk(s, rec)
+        if energy_ledger:
+            if s is not before:
+                s = energy.account_host_change(before, s, ctx["params"])
+            ctx["balances"].append({"time": float(s.time), **energy.balance(s, ctx["params"])})
+        t_load = float(s.time) - t0
+        prm = ctx["params"]
+        if len(brk.events) > ctx["n_events"]:
+            ctx["n_events"] = len(brk.events)
+            new_dt = adaptive_dt(s.particles, prm, cfg.dt_safety)
+            if new_dt < float(prm.dt):
+                prm = replace(prm, dt=jnp.asarray(new_dt, prm.dt.dtype))
+                brk.params = replace(brk.params, dt=prm.dt)
+                ctx["params"] = prm
+                ctx["dt_log"].append((t_load, new_dt))
+        step_dt = float(prm.dt)
+        pending = ctx["pending"]
+        while pending and t_load >= pending[0] - 0.5 * step_dt * cfg.record_every:
+            ctx["snaps"].append({"t_load": t_load, "target": pending.pop(0), **frame_of(s)})
+        done = t_load >= cfg.load_time - 0.5 * step_dt
+        return s, stop or done, prm
+
+    save = None
+    if checkpoint is not None:
+        from .. import io
+
+        def save(payload):
+            io.save_checkpoint(
+                checkpoint, key, {"settle": settle, "context": ctx, "simulate": payload}
+            )
+
+    params0 = ctx["params0"]
+    load = simulate(
+        s0 if s0 is not None else saved["simulate"]["state"],
+        params0,
+        brk.grid,
+        n_steps=int(math.ceil(cfg.load_time / min(float(params0.dt), smallest_dt(cfg, m_mean)))),
+        record_every=cfg.record_every,
+        records_per_segment=cfg.records_per_segment,
+        frame_every=10,
+        callback=step_callback,
+        progress=progress,
+        desc=f"oedometer {cfg.method}",
+        checkpoint=save,
+        checkpoint_every_s=checkpoint_every_s,
+        resume=None if saved is None else saved["simulate"],
+    )
+    snaps = ctx["snaps"]
+    snaps[0]["target"] = 0.0
+    info = {
+        "snapshots": snaps,
+        "initial_mass": ctx["mass0"],
+        "initial_area": ctx["area0"],
+        "mean_initial_mass": ctx["m_mean"],
+        "load_start_time": t0,
+        "bar_start_y": ctx["y_bar"],
+        "dt_log": ctx["dt_log"],
+    }
+    if energy_ledger:
+        info["energy"] = ctx["balances"]
+    return settle, load, brk, info
+
+
+def checkpoint_key(cfg, build_fn=None) -> dict:
+    """What a checkpoint of :func:`simulate_test` must match to be continued: the whole
+    configuration and the scene that built the packing."""
+    build_name = None if build_fn is None else f"{build_fn.__module__}.{build_fn.__qualname__}"
+    return {"config": dataclasses.asdict(cfg), "build": build_name}
+
+
+def checkpointed_test(cfg, out_dir: Path, progress, checkpoint_minutes, resume, build_fn=None):
+    """:func:`simulate_test` with the checkpoints of ``run``: ``(path or None, result)``."""
+    ckpt = checkpoint_path(out_dir, checkpoint_minutes)
+    return ckpt, simulate_test(
+        cfg,
+        progress=progress,
+        build_fn=build_fn,
+        checkpoint=ckpt,
+        checkpoint_every_s=60.0 * checkpoint_minutes,
+        resume=resume,
+    )
+
+
+def checkpoint_path(out_dir: Path, minutes: float) -> Path | None:
+    """``out_dir/checkpoint.pkl``, or None when ``minutes`` is 0 (no checkpoints)."""
+    if not (math.isfinite(minutes) and minutes >= 0.0):
+        raise ValueError(f"checkpoint_minutes must be finite and >= 0, got {minutes}")
+    return Path(out_dir) / "checkpoint.pkl" if minutes > 0 else None
+
+
+def _settle_and_arm(cfg, build_fn, progress: bool, energy_ledger: bool):
+    """The settling, then the top bar put above the pile and the breakage handler made:
+    ``(settle_result, context, loading_state)``; the context holds what the loading's
+    callback keeps between segments (all of it goes into a checkpoint)."""
     state, params, grid = (build_fn or build)(cfg)
     dt = float(params.dt)
     peak = [0.0]
@@ -269,8 +393,6 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
     p0 = s0.particles
     act0 = np.asarray(p0.active)
     m_mean = float(np.asarray(p0.mass)[act0].mean())
-    mass0 = float(np.asarray(p0.mass)[act0].sum())
-    area0 = _total_area(p0)
     brk = make_breakage(
         cfg.method,
         params,
@@ -287,64 +409,24 @@ def simulate_test(cfg, *, progress: bool = False, build_fn=None, energy_ledger: 
         conserve_mass=cfg.conserve_mass,
         min_radius=_min_radius(cfg),
     )
-    t0 = float(s0.time)
-    targets = sorted(cfg.snapshot_times)
-    snaps: list[dict] = [{"t_load": 0.0, **frame_of(s0)}]
-    pending = [t for t in targets if t > 0]
-    dt_log = [(0.0, dt)]
-    current = {"params": params, "n_events": 0}
-    balances: list[dict] = []
     if energy_ledger:
         s0 = energy.attach(s0, params, settle.grid)
-
-    def step_callback(s, rec):
-        before = s
-        s, stop = brk(s, rec)
-        if energy_ledger:
-            if s is not before:
-                s = energy.account_host_change(before, s, current["params"])
-            balances.append({"time": float(s.time), **energy.balance(s, current["params"])})
-        t_load = float(s.time) - t0
-        prm = current["params"]
-        if len(brk.events) > current["n_events"]:
-            current["n_events"] = len(brk.events)
-            new_dt = adaptive_dt(s.particles, prm, cfg.dt_safety)
-            if new_dt < float(prm.dt):
-                prm = replace(prm, dt=jnp.asarray(new_dt, prm.dt.dtype))
-                brk.params = replace(brk.params, dt=prm.dt)
-                current["params"] = prm
-                dt_log.append((t_load, new_dt))
-        step_dt = float(prm.dt)
-        while pending and t_load >= pending[0] - 0.5 * step_dt * cfg.record_every:
-            snaps.append({"t_load": t_load, "target": pending.pop(0), **frame_of(s)})
-        done = t_load >= cfg.load_time - 0.5 * step_dt
-        return s, stop or done, prm
-
-    load = simulate(
-        s0,
-        params,
-        brk.grid,
-        n_steps=int(math.ceil(cfg.load_time / min(dt, smallest_dt(cfg, m_mean)))),
-        record_every=cfg.record_every,
-        records_per_segment=cfg.records_per_segment,
-        frame_every=10,
-        callback=step_callback,
-        progress=progress,
-        desc=f"oedometer {cfg.method}",
-    )
-    snaps[0]["target"] = 0.0
-    info = {
-        "snapshots": snaps,
-        "initial_mass": mass0,
-        "initial_area": area0,
-        "mean_initial_mass": m_mean,
-        "load_start_time": t0,
-        "bar_start_y": y_bar,
-        "dt_log": dt_log,
+    ctx = {
+        "brk": brk,
+        "t0": float(s0.time),
+        "params0": params,
+        "params": params,
+        "n_events": 0,
+        "snaps": [{"t_load": 0.0, **frame_of(s0)}],
+        "pending": [t for t in sorted(cfg.snapshot_times) if t > 0],
+        "dt_log": [(0.0, dt)],
+        "balances": [],
+        "mass0": float(np.asarray(p0.mass)[act0].sum()),
+        "area0": _total_area(p0),
+        "m_mean": m_mean,
+        "y_bar": y_bar,
     }
-    if energy_ledger:
-        info["energy"] = balances
-    return settle, load, brk, info
+    return settle, ctx, s0
 
 
 def _min_radius(cfg) -> float | None:
@@ -520,10 +602,24 @@ def figures(load, brk, info, cfg, out_dir: Path) -> list[str]:
     return out
 
 
-def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
-    settle, load, brk, info = simulate_test(cfg, progress=progress)
-    summary = summarize(settle, load, brk, info, cfg)
+def run(
+    cfg: Config,
+    out_dir: Path,
+    *,
+    progress: bool = True,
+    vtk: bool = False,
+    checkpoint_minutes: float = 10.0,
+    resume: bool = False,
+) -> dict:
+    """Run the test and write its outputs to ``out_dir``. During the loading the run is
+    saved to ``out_dir/checkpoint.pkl`` every ``checkpoint_minutes`` (0: never); with
+    ``resume`` a run interrupted after such a save goes on from it (same configuration
+    only), and gives the outputs of the uninterrupted run. The file is deleted at the end."""
     out_dir = Path(out_dir)
+    ckpt, (settle, load, brk, info) = checkpointed_test(
+        cfg, out_dir, progress, checkpoint_minutes, resume
+    )
+    summary = summarize(settle, load, brk, info, cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     figs = figures(load, brk, info, cfg, out_dir)
     summary = write_outputs(
@@ -533,4 +629,6 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     from .. import io
 
     io.write_summary(out_dir / "summary.json", summary)
+    if ckpt is not None:
+        ckpt.unlink(missing_ok=True)
     return summary

@@ -145,8 +145,14 @@ def build(cfg: Config):
     return state, params, grid
 
 
-def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
-    settle, load, brk, info = oc.simulate_test(cfg, progress=progress, build_fn=build)
+def run(
+    cfg: Config, out_dir: Path, *, progress=True, vtk=False, checkpoint_minutes=10.0, resume=False
+):
+    """As :func:`jaxgran.scenes.oedometer_cantor.run` (checkpoints included), for the
+    Voronoi packing; the summary adds the PSD."""
+    ckpt, (settle, load, brk, info) = oc.checkpointed_test(
+        cfg, Path(out_dir), progress, checkpoint_minutes, resume, build_fn=build
+    )
     summary = oc.summarize(settle, load, brk, info, cfg)
     p = load.state.particles
     act = np.asarray(p.active)
@@ -169,4 +175,6 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     from .. import io
 
     io.write_summary(out_dir / "summary.json", summary)
+    if ckpt is not None:
+        ckpt.unlink(missing_ok=True)
     return summary
