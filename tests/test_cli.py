@@ -75,6 +75,26 @@ def test_resume_is_refused_where_a_scene_has_no_checkpoints(capsys):
     assert "checkpoint_minutes" in capsys.readouterr().err
 
 
+def test_a_finished_run_is_recognised_by_its_configuration(deposit_run):
+    """``--resume`` skips a long run that already finished in its folder, and only one with
+    the same scene and configuration (here the deposit's summary, written as every scene
+    writes it)."""
+    import dataclasses
+
+    from jaxgran.scenes import deposit as dp
+    from jaxgran.scenes.base import finished_summary
+
+    summary = json.loads((deposit_run / "summary.json").read_text())
+    cfg = dp.Config(**{**dataclasses.asdict(dp.Config()), **summary["config"]})
+    assert finished_summary(deposit_run, "deposit", cfg) == summary
+    assert (
+        finished_summary(deposit_run, "deposit", dataclasses.replace(cfg, seed=cfg.seed + 1))
+        is None
+    )
+    assert finished_summary(deposit_run, "oedometer_voronoi", cfg) is None
+    assert finished_summary(deposit_run / "nowhere", "deposit", cfg) is None
+
+
 def test_list_settings_take_any_number_of_values():
     """A list setting (confinements, snapshot times) is read with any number of values of its
     element type, brackets optional; a value of the wrong type is an error naming it."""

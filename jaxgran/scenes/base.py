@@ -151,6 +151,19 @@ def write_outputs(
     return summary
 
 
+def finished_summary(out_dir: Path, scene: str, config: Any) -> dict | None:
+    """The summary.json in ``out_dir`` if a run of ``scene`` with exactly ``config`` finished
+    there (so that a resumed batch of long runs skips the done ones), else None."""
+    path = Path(out_dir) / "summary.json"
+    if not path.exists():
+        return None
+    summary = json.loads(path.read_text())
+    want = json.loads(json.dumps(dataclasses.asdict(config), default=float))
+    if summary.get("scene") != scene or summary.get("config") != want:
+        return None
+    return summary
+
+
 def dumps(summary: dict) -> str:
     """Compact human-readable summary for the terminal."""
     keep = {k: v for k, v in summary.items() if k not in ("config", "figures")}

@@ -52,7 +52,7 @@ from ..state import (
     replace,
     wall,
 )
-from .base import contact_params, write_outputs
+from .base import contact_params, finished_summary, write_outputs
 
 __all__ = ["Config", "QUICK", "build", "run", "simulate_test", "summarize"]
 
@@ -614,8 +614,13 @@ def run(
     """Run the test and write its outputs to ``out_dir``. During the loading the run is
     saved to ``out_dir/checkpoint.pkl`` every ``checkpoint_minutes`` (0: never); with
     ``resume`` a run interrupted after such a save goes on from it (same configuration
-    only), and gives the outputs of the uninterrupted run. The file is deleted at the end."""
+    only), and gives the outputs of the uninterrupted run; if that run already finished in
+    ``out_dir`` (its summary.json has this configuration), its summary is returned as it is.
+    The checkpoint is deleted at the end."""
     out_dir = Path(out_dir)
+    done = finished_summary(out_dir, "oedometer_cantor", cfg) if resume else None
+    if done is not None:
+        return done
     ckpt, (settle, load, brk, info) = checkpointed_test(
         cfg, out_dir, progress, checkpoint_minutes, resume
     )

@@ -37,7 +37,7 @@ from ..state import (
     wall,
 )
 from . import oedometer_cantor as oc
-from .base import contact_params, write_outputs
+from .base import contact_params, finished_summary, write_outputs
 
 __all__ = ["Config", "QUICK", "build", "run"]
 
@@ -150,6 +150,9 @@ def run(
 ):
     """As :func:`jaxgran.scenes.oedometer_cantor.run` (checkpoints included), for the
     Voronoi packing; the summary adds the PSD."""
+    done = finished_summary(Path(out_dir), "oedometer_voronoi", cfg) if resume else None
+    if done is not None:
+        return done
     ckpt, (settle, load, brk, info) = oc.checkpointed_test(
         cfg, Path(out_dir), progress, checkpoint_minutes, resume, build_fn=build
     )
