@@ -326,3 +326,14 @@ def test_bad_servo_time_is_refused():
     for bad in (0.0, -1.0, np.nan):
         with pytest.raises(ValueError, match="servo_time"):
             wall((0.0, 0.0), (0.0, 1.0), servo_time=bad)
+
+
+def test_resume_refuses_a_checkpoint_of_another_segment_layout(pile):
+    """A payload saved by a run of other length or segment size would silently shift the
+    records: refused before any step."""
+    parts, walls, params, grid = pile
+    state = make_state(parts, walls, pair_capacity=400)
+    payload = {"n_seg": 5, "seg_steps": 100}
+    with pytest.raises(ValueError, match="checkpoint was taken in a run of 5 segments"):
+        simulate(state, params, grid, n_steps=1000, record_every=10, records_per_segment=10,
+                 resume=payload, progress=False)  # fmt: skip
