@@ -189,6 +189,13 @@ def test_an_interrupted_oedometer_resumes_to_the_same_run(quick_split, tmp_path)
     other = dataclasses.replace(QUICK_SPLIT, seed=QUICK_SPLIT.seed + 1)
     with pytest.raises(ValueError, match="other settings"):
         oc.simulate_test(other, checkpoint=path, resume=True)
+    # and a float64 checkpoint is not continued in float32
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.raises(ValueError, match="written in float64"):
+            oc.simulate_test(QUICK_SPLIT, checkpoint=path, resume=True)
+    finally:
+        jax.config.update("jax_enable_x64", True)
 
 
 @pytest.mark.parametrize("floor", [-0.1, 1.5, float("nan")])

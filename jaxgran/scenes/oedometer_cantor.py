@@ -260,6 +260,7 @@ def simulate_test(
         from .. import io
 
         saved = io.load_checkpoint(checkpoint, key)
+        _check_precision(saved.get("x64", True), checkpoint)
     if saved is None:
         settle, ctx, s0 = _settle_and_arm(cfg, build_fn, progress, energy_ledger)
     else:
@@ -296,7 +297,9 @@ def simulate_test(
 
         def save(payload):
             io.save_checkpoint(
-                checkpoint, key, {"settle": settle, "context": ctx, "simulate": payload}
+                checkpoint,
+                key,
+                {"settle": settle, "context": ctx, "simulate": payload, "x64": _x64()},
             )
 
     params0 = ctx["params0"]
@@ -329,6 +332,20 @@ def simulate_test(
     if energy_ledger:
         info["energy"] = ctx["balances"]
     return settle, load, brk, info
+
+
+def _x64() -> bool:
+    import jax
+
+    return bool(jax.config.jax_enable_x64)
+
+
+def _check_precision(saved_x64: bool, path) -> None:
+    """A checkpoint continues only in its own precision (unpickled float64 arrays would be
+    cast to float32 without a word)."""
+    if bool(saved_x64) != _x64():
+        want = "float64 (without --float32)" if saved_x64 else "float32 (--float32)"
+        raise ValueError(f"{path}: the checkpoint was written in {want}; resume it so")
 
 
 def checkpoint_key(cfg, build_fn=None) -> dict:
