@@ -237,9 +237,8 @@ def simulate(
             ``checkpoint_every_s`` seconds (wall clock) have passed since the start or the
             last call; ``payload`` holds what ``resume`` needs (``state``, ``params``,
             ``grid``, ``series``, ``frames``, ``segment``, ``done``, ``regrows``, the wall
-            time so far). The caller
-            saves it with whatever its callback needs (e.g. a pickle, see
-            :func:`jaxgran.io.save_checkpoint`).
+            time so far). The caller saves it with whatever its callback needs (e.g. a
+            pickle, see :func:`jaxgran.io.save_checkpoint`).
         resume: a ``payload`` given to ``checkpoint`` by an earlier call with the same
             ``n_steps`` and segment length: the run continues from it (its ``state``,
             ``params`` and ``grid`` replace the arguments) and returns what the uninterrupted

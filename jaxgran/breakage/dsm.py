@@ -499,13 +499,7 @@ class DsmBreakage:
         self.n_calls = 0
         self.n_checked = 0
         self.last_saddle: dict[int, float] = {}  # uid -> highest saddle psi (Pa), last check
-        self._cache: OrderedDict[int, dict[str, Array]] = OrderedDict()
-        self._ops_static: dict[str, Any] | None = None
-        # screening tables of every shape built (uid -> BOUND_FIELDS rows), never evicted
-        # while the particle lives, and their stack by slot (device) with the slot's uid
-        self._bound_rows: dict[int, dict[str, Array]] = {}
-        self._bound_stack: dict[str, Array] | None = None
-        self._bound_uid = np.zeros(0, np.int64)
+        self._reset_caches()
         self.n_screened = 0  # particles that passed the screening, summed over calls
 
     # per-shape operators and screening tables: rebuilt on demand, so a pickled handler
@@ -520,10 +514,16 @@ class DsmBreakage:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._cache = OrderedDict()
-        self._ops_static = None
-        self._bound_rows = {}
-        self._bound_stack = None
+        self._reset_caches()
+
+    def _reset_caches(self) -> None:
+        """Empty the per-shape BEM operators (LRU) and the screening tables."""
+        self._cache: OrderedDict[int, dict[str, Array]] = OrderedDict()
+        self._ops_static: dict[str, Any] | None = None
+        # screening tables of every shape built (uid -> BOUND_FIELDS rows), never evicted
+        # while the particle lives, and their stack by slot (device) with the slot's uid
+        self._bound_rows: dict[int, dict[str, Array]] = {}
+        self._bound_stack: dict[str, Array] | None = None
         self._bound_uid = np.zeros(0, np.int64)
 
     # -------------------------------------------------------------- public entry points
