@@ -50,6 +50,9 @@ def main() -> int:
     ap.add_argument("--dest", type=Path, default=ROOT / "benchmarks" / "voronoi_oedometer")
     ap.add_argument("--checkpoint-minutes", type=float, default=5.0)
     ap.add_argument("--collect-only", action="store_true", help="no simulation")
+    ap.add_argument("--bar-speed", type=float, default=None, help="m/s (default: Config's, 1 mm/s)")
+    ap.add_argument("--load-time", type=float, default=None, help="s (default: Config's, 10 s)")
+    ap.add_argument("--quick", action="store_true", help="the small QUICK scene (smoke test)")
     args = ap.parse_args()
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = sorted(set(methods) - set(METHODS))
@@ -64,9 +67,14 @@ def main() -> int:
     jax.config.update("jax_enable_x64", True)
     from jaxgran.scenes import oedometer_voronoi as ov
 
+    over = dict(ov.QUICK) if args.quick else {}
+    if args.bar_speed is not None:
+        over["bar_speed"] = args.bar_speed
+    if args.load_time is not None:
+        over["load_time"] = args.load_time
     for method in methods:
         if not args.collect_only:
-            cfg = dataclasses.replace(ov.Config(), method=method)
+            cfg = dataclasses.replace(ov.Config(), method=method, **over)
             s = ov.run(
                 cfg,
                 args.runs / method,
