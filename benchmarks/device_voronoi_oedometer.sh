@@ -6,8 +6,11 @@
 #
 #   OUT=/tmp/out LIMIT=470 bash benchmarks/device_voronoi_oedometer.sh
 #
-# Writes, under $OUT: <method>.tgz (the run folder: checkpoint, or summary + run.h5 +
-# figures once finished), <method>.log, and gpu.txt (device, versions, wall times).
+# Writes, under $OUT: <method>.tgz (the run folder, checkpoint or summary + run.h5 + figures
+# once finished, and the run's log) and gpu.txt (device, versions, wall time, last progress
+# lines): five files, inside the device tool's limit of eight.
+# FORK_FROM=dsm starts the methods without a checkpoint from that method's checkpoint
+# (taken before any breakage; oedometer_cantor.fork_checkpoint), before any run goes on.
 # Runs the repository's own jaxgran from the source tree (PYTHONPATH): the machine's Python
 # has jax and the other dependencies but nothing can be installed there.
 set -u
@@ -29,18 +32,24 @@ if [ -d voronoi_carry ]; then cp -r voronoi_carry/. "$RUNS"/; fi
   python3 -c "import jax, numpy; print('jax', jax.__version__, 'numpy', numpy.__version__, jax.devices())"
   echo "bar_speed=$BAR_SPEED load_time=$LOAD_TIME limit=$LIMIT s methods=$METHODS"
 } > "$OUT/gpu.txt" 2>&1
+ARGS=(--runs "$RUNS" --dest "$RUNS/collected" --bar-speed "$BAR_SPEED" --load-time "$LOAD_TIME")
+[ -n "${QUICK:-}" ] && ARGS+=(--quick)
+if [ -n "${FORK_FROM:-}" ]; then
+  python3 benchmarks/run_voronoi_oedometer.py "${ARGS[@]}" --collect-only \
+    --fork-from "$FORK_FROM" >> "$OUT/gpu.txt" 2>&1
+fi
 start=$(date +%s)
 for m in $METHODS; do
-  timeout "$LIMIT" python3 benchmarks/run_voronoi_oedometer.py --methods "$m" \
-    --runs "$RUNS" --dest "$RUNS/collected" --bar-speed "$BAR_SPEED" \
-    --load-time "$LOAD_TIME" --checkpoint-minutes "$CKPT_MIN" ${QUICK:+--quick} > "$OUT/$m.log" 2>&1 &
+  timeout "$LIMIT" python3 benchmarks/run_voronoi_oedometer.py --methods "$m" "${ARGS[@]}" \
+    --checkpoint-minutes "$CKPT_MIN" > "$RUNS/$m.log" 2>&1 &
 done
 wait
 echo "wall $(( $(date +%s) - start )) s" >> "$OUT/gpu.txt"
 for m in $METHODS; do
-  [ -d "$RUNS/$m" ] && tar czf "$OUT/$m.tgz" -C "$RUNS" "$m"
+  [ -d "$RUNS/$m" ] && tar czf "$OUT/$m.tgz" -C "$RUNS" "$m" "$m.log"
   # the last progress line of each run, for the steps/s
-  tr '\r' '\n' < "$OUT/$m.log" | grep -a "step/s" | tail -1 | sed "s/^/$m: /" >> "$OUT/gpu.txt"
+  tr '\r' '\n' < "$RUNS/$m.log" | grep -a "step/s" | tail -1 | sed "s/^/$m: /" >> "$OUT/gpu.txt"
+  tr '\r' '\n' < "$RUNS/$m.log" | grep -av "step/s" | tail -3 >> "$OUT/gpu.txt"
 done
 ls -la "$OUT" >> "$OUT/gpu.txt"
 cat "$OUT/gpu.txt"

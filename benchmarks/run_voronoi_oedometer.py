@@ -1,17 +1,27 @@
 """The full Voronoi oedometer of paper 000 §IV.B with the four breakage methods (issue 5),
 resumable across sessions.
 
-Each method runs the default ``oedometer-voronoi`` configuration (600 cells, 137 cm box,
-1 mm/s for 10 s, float64) into ``runs/voronoi_full/<method>`` with a checkpoint every few
-minutes; rerunning the script goes on from the checkpoints and skips the finished runs
-(``oedometer_voronoi.run(..., resume=True)``). Methods run one after another: two at once
-on 2 cores ran at a quarter of the speed of one each. Once a method has finished, its
-summary.json and figures are copied to ``benchmarks/voronoi_oedometer/<method>/``
-(committed; the run.h5 stays in runs/), and once all four have, ``jaxgran compare`` writes
-``benchmarks/voronoi_oedometer/compare.{md,json}`` and ``docs/voronoi_oedometer_methods.png``.
+Each method runs the ``oedometer-voronoi`` configuration (600 cells, 137 cm box, float64)
+into ``--runs/<method>`` with a checkpoint every few minutes; rerunning the script goes on
+from the checkpoints and skips the finished runs (``oedometer_voronoi.run(...,
+resume=True)``). Methods run one after another: two at once on 2 cores ran at a quarter of
+the speed of one each. Once a method has finished, its summary.json and figures are copied
+to ``--dest/<method>/`` (committed; the run.h5 stays in runs/), and once all four have,
+``jaxgran compare`` writes ``--dest/compare.{md,json}`` and
+``docs/voronoi_oedometer_methods.png``.
 
-    python benchmarks/run_voronoi_oedometer.py                 # all four, resumable
-    python benchmarks/run_voronoi_oedometer.py --methods dsm   # one of them
+The paper's loading (1 mm/s for 10 s, the Config default) broke no grain of our packing
+(benchmarks/voronoi_oedometer/dsm: bar force at most 110 N; the loose top layer takes the
+first ~9 mm), so the comparison uses 3 mm/s for 10 s (30 mm of travel; inertial number
+about 1e-5, still quasi-static): ``--bar-speed 0.003``. ``--fork-from dsm`` starts the other
+methods from the DSM run's checkpoint taken before any breakage (all methods share the run
+up to the first breakage; :func:`jaxgran.scenes.oedometer_cantor.fork_checkpoint`), which
+also gives them one packing where the settling is not reproducible (GPU).
+``benchmarks/device_voronoi_oedometer.sh`` runs the four at once on a GPU.
+
+    python benchmarks/run_voronoi_oedometer.py --runs runs/voronoi_30mm \
+        --dest benchmarks/voronoi_oedometer/travel_30mm --bar-speed 0.003 --fork-from dsm
+    python benchmarks/run_voronoi_oedometer.py --methods dsm   # one method, paper loading
     python benchmarks/run_voronoi_oedometer.py --collect-only  # copy and compare, no runs
 """
 
@@ -53,6 +63,12 @@ def main() -> int:
     ap.add_argument("--bar-speed", type=float, default=None, help="m/s (default: Config's, 1 mm/s)")
     ap.add_argument("--load-time", type=float, default=None, help="s (default: Config's, 10 s)")
     ap.add_argument("--quick", action="store_true", help="the small QUICK scene (smoke test)")
+    ap.add_argument(
+        "--fork-from",
+        default=None,
+        help="start each method without a checkpoint of its own from this method's "
+        "checkpoint, taken before any breakage (oedometer_cantor.fork_checkpoint)",
+    )
     args = ap.parse_args()
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = sorted(set(methods) - set(METHODS))
@@ -72,9 +88,21 @@ def main() -> int:
         over["bar_speed"] = args.bar_speed
     if args.load_time is not None:
         over["load_time"] = args.load_time
+    from jaxgran.scenes import oedometer_cantor as oc
+
+    source = args.runs / str(args.fork_from) / "checkpoint.pkl"
+    for method in methods if args.fork_from and source.exists() else []:
+        # all forks before any run goes on (the source must not have broken a grain yet)
+        ckpt = args.runs / method / "checkpoint.pkl"
+        if method == args.fork_from or ckpt.exists() or (ckpt.parent / "summary.json").exists():
+            continue
+        cfg = dataclasses.replace(ov.Config(), method=method, **over)
+        cfg_src = dataclasses.replace(cfg, method=args.fork_from)
+        origin = oc.fork_checkpoint(source, ckpt, cfg_src, cfg, build_fn=ov.build)
+        print(f"{method}: forked from {origin}", flush=True)
     for method in methods:
+        cfg = dataclasses.replace(ov.Config(), method=method, **over)
         if not args.collect_only:
-            cfg = dataclasses.replace(ov.Config(), method=method, **over)
             s = ov.run(
                 cfg,
                 args.runs / method,

@@ -11,6 +11,7 @@ import pytest
 
 from jaxgran import io
 from jaxgran.breakage import metrics
+from jaxgran.breakage.averaged import method_name
 from jaxgran.scenes import brazilian_dsm as bd
 from jaxgran.scenes import breakage_types as bt
 from jaxgran.scenes import deposit as dp
@@ -196,6 +197,49 @@ def test_an_interrupted_oedometer_resumes_to_the_same_run(quick_split, tmp_path)
             oc.simulate_test(QUICK_SPLIT, checkpoint=path, resume=True)
     finally:
         jax.config.update("jax_enable_x64", True)
+
+
+def test_a_run_forked_before_its_first_breakage_goes_on_as_the_run(quick_split, tmp_path):
+    (_, load, brk, _), _, saved, _ = quick_split
+    key = oc.checkpoint_key(QUICK_SPLIT)
+    src = tmp_path / "source.pkl"
+    n_events = []
+    for blob in saved:
+        src.write_bytes(blob)
+        n_events.append(len(io.load_checkpoint(src, key)["context"]["brk"].events))
+    assert 0 in n_events and n_events[-1] >= 1
+    # the last checkpoint before the first breakage
+    pick = max(i for i, n in enumerate(n_events) if n == 0)
+    src.write_bytes(saved[pick])
+    # a fresh handler at the fork (what another method gets) continues the run bit for bit:
+    # before the first breakage the handler holds nothing the run depends on
+    dst = tmp_path / "fork.pkl"
+    origin = oc.fork_checkpoint(src, dst, QUICK_SPLIT, QUICK_SPLIT)
+    assert origin["method"] == "split-cell" and origin["t_load"] > 0.0
+    settle2, load2, brk2, info2 = oc.simulate_test(
+        QUICK_SPLIT, checkpoint=dst, checkpoint_every_s=1e9, resume=True
+    )
+    p, p2 = load.state.particles, load2.state.particles
+    for name in ("pos", "vel", "angle", "omega", "mass", "verts", "uid", "active"):
+        np.testing.assert_array_equal(np.asarray(getattr(p2, name)), np.asarray(getattr(p, name)))
+    assert [e["time"] for e in brk2.events] == [e["time"] for e in brk.events]
+    assert [e["parent_uid"] for e in brk2.events] == [e["parent_uid"] for e in brk.events]
+    assert info2["forked_from"] == origin
+    # another method's run starts from the same state with its own handler
+    mc = dataclasses.replace(QUICK_SPLIT, method="mohr-coulomb")
+    oc.fork_checkpoint(src, dst, QUICK_SPLIT, mc)
+    got = io.load_checkpoint(dst, oc.checkpoint_key(mc))
+    assert method_name(got["context"]["brk"]) == "mohr-coulomb" and not got["context"]["brk"].events
+    np.testing.assert_array_equal(
+        np.asarray(got["simulate"]["state"].particles.pos),
+        np.asarray(io.load_checkpoint(src, key)["simulate"]["state"].particles.pos),
+    )
+    # refused: a source that has broken grains, a configuration that differs otherwise
+    src.write_bytes(saved[-1])
+    with pytest.raises(ValueError, match="breakage events"):
+        oc.fork_checkpoint(src, dst, QUICK_SPLIT, mc)
+    with pytest.raises(ValueError, match="more than the method"):
+        oc.fork_checkpoint(src, dst, QUICK_SPLIT, dataclasses.replace(mc, seed=1))
 
 
 @pytest.mark.parametrize("floor", [-0.1, 1.5, float("nan")])

@@ -328,6 +328,7 @@ def simulate_test(
         "load_start_time": t0,
         "bar_start_y": ctx["y_bar"],
         "dt_log": ctx["dt_log"],
+        "forked_from": ctx.get("forked_from"),
     }
     if energy_ledger:
         info["energy"] = ctx["balances"]
@@ -410,22 +411,7 @@ def _settle_and_arm(cfg, build_fn, progress: bool, energy_ledger: bool):
     p0 = s0.particles
     act0 = np.asarray(p0.active)
     m_mean = float(np.asarray(p0.mass)[act0].mean())
-    brk = make_breakage(
-        cfg.method,
-        params,
-        settle.grid,
-        calibration_force=cfg.calibration_force,
-        calibration_radius=cfg.calibration_radius,
-        thickness=cfg.thickness,
-        poisson_ratio=cfg.poisson_ratio,
-        min_area=cfg.min_fragment_fraction * m_mean / cfg.areal_density,
-        mean_initial_mass=m_mean,
-        dsm_options={"n_elements": cfg.n_elements, "n_points": cfg.n_points, "screen": cfg.screen},
-        erosion=cfg.erosion,
-        small_pieces=cfg.small_pieces,
-        conserve_mass=cfg.conserve_mass,
-        min_radius=_min_radius(cfg),
-    )
+    brk = _make_handler(cfg, params, settle.grid, m_mean)
     if energy_ledger:
         s0 = energy.attach(s0, params, settle.grid)
     ctx = {
@@ -444,6 +430,63 @@ def _settle_and_arm(cfg, build_fn, progress: bool, energy_ledger: bool):
         "y_bar": y_bar,
     }
     return settle, ctx, s0
+
+
+def _make_handler(cfg, params, grid, m_mean: float):
+    """The breakage handler of ``cfg.method`` for a packing of mean grain mass ``m_mean``
+    (kg), with the strengths of the Brazilian calibration and the scene's options."""
+    return make_breakage(
+        cfg.method,
+        params,
+        grid,
+        calibration_force=cfg.calibration_force,
+        calibration_radius=cfg.calibration_radius,
+        thickness=cfg.thickness,
+        poisson_ratio=cfg.poisson_ratio,
+        min_area=cfg.min_fragment_fraction * m_mean / cfg.areal_density,
+        mean_initial_mass=m_mean,
+        dsm_options={"n_elements": cfg.n_elements, "n_points": cfg.n_points, "screen": cfg.screen},
+        erosion=cfg.erosion,
+        small_pieces=cfg.small_pieces,
+        conserve_mass=cfg.conserve_mass,
+        min_radius=_min_radius(cfg),
+    )
+
+
+def fork_checkpoint(src, dst, cfg_src, cfg_dst, build_fn=None) -> dict:
+    """Start the run of ``cfg_dst`` from the checkpoint ``src`` of the run of ``cfg_src``:
+    writes ``dst``, which :func:`simulate_test` with ``resume=True`` continues. Returns
+    ``{"method", "t_load", "wall_time_s"}`` of the source at the fork (kept in the summary as
+    ``forked_from``; the run's wall time includes the source's).
+
+    The configurations may differ in ``method`` alone, and the source must not have broken
+    a grain yet: up to the first breakage the methods only evaluate their criteria, so every
+    method's run is the source's run up to there (the test checks it bit for bit), and the
+    comparison of methods starts from one packing and one loaded state even where the
+    settling is not reproducible (GPU sums are not ordered). Raises ``ValueError``
+    otherwise."""
+    from .. import io
+
+    if dataclasses.replace(cfg_dst, method=cfg_src.method) != cfg_src:
+        raise ValueError("fork_checkpoint: the configurations differ in more than the method")
+    saved = io.load_checkpoint(src, checkpoint_key(cfg_src, build_fn))
+    ctx = dict(saved["context"])
+    if ctx["brk"].events or ctx["n_events"]:
+        raise ValueError(
+            f"fork_checkpoint: {src} has {len(ctx['brk'].events)} breakage events; runs of "
+            "other methods share only the stretch before the first breakage"
+        )
+    t_load = float(saved["simulate"]["state"].time) - float(ctx["t0"])
+    origin = {
+        "method": cfg_src.method,
+        "t_load": t_load,
+        "wall_time_s": float(saved["simulate"]["wall_time_s"]),
+    }
+    ctx["brk"] = _make_handler(cfg_dst, ctx["params0"], saved["settle"].grid, ctx["m_mean"])
+    ctx["forked_from"] = origin
+    payload = dict(saved, context=ctx)
+    io.save_checkpoint(dst, checkpoint_key(cfg_dst, build_fn), payload)
+    return origin
 
 
 def _min_radius(cfg) -> float | None:
@@ -521,6 +564,7 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "bar_force_max_N": float(np.abs(series["wall_force"][:, -1, 1]).max()),
         "steps": int(settle.steps + load.steps),
         "wall_time_s": float(settle.wall_time_s + load.wall_time_s),
+        "forked_from": info.get("forked_from"),
         "n_events": len(ev),
         "breakage_types": types,
         "mass_lost_kg": lost,
