@@ -282,3 +282,39 @@ def test_bound_screening_catches_a_corner_chip_that_the_force_heuristic_misses()
     assert light.check(state) == [] and light.n_checked == 0
     assert every.check(state) == []
     assert every.last_saddle[uid] == pytest.approx(0.25 * bound.last_saddle[uid], rel=0.02)
+
+
+def test_force_chain_field_follows_the_brazilian_disc_solution():
+    # Brazilian disc (Hondros): on the loaded diameter, at y from the centre,
+    # sigma_1 - sigma_2 = (2 F / (pi t)) (2 / (D - 2y) + 2 / (D + 2y)), 8 F / (pi D t) at 0
+    from jaxgran.breakage.photoelastic import force_chain_field
+
+    force, d, t = 100.0, 2.0 * CFG.disc_radius, CFG.thickness
+    centre_i = []
+    for rotation in (0.0, 0.3):
+        state, params, _ = _pressed_disc(force, rotation)
+        field = force_chain_field(
+            state,
+            params,
+            poisson_ratio=CFG.poisson_ratio,
+            thickness=t,
+            n_elements=CFG.n_elements,
+            n_points=200,
+        )
+        assert field["n_loaded"] == 1 and np.all(field["slot"] == 0)
+        assert field["mean"][0] == pytest.approx(field["intensity"].mean())
+        xy = field["points"] - np.asarray(state.particles.pos[0])
+        near = np.linalg.norm(xy, axis=1) < 0.15 * CFG.disc_radius
+        assert near.sum() >= 3
+        centre_i.append(float(field["intensity"][near].mean()))
+        if rotation == 0.0:
+            # the sample grid holds the centroid: its column is the loaded diameter
+            axis = (np.abs(xy[:, 0]) < 1e-6 * d) & (np.abs(xy[:, 1]) < 0.3 * d)
+            assert axis.sum() >= 9
+            y = xy[axis, 1]
+            want = 2 * force / (np.pi * t) * (2 / (d - 2 * y) + 2 / (d + 2 * y))
+            np.testing.assert_allclose(field["intensity"][axis], want, rtol=5e-3)
+    # the mean over r < 0.15 R is within 2 % of the centre value
+    assert centre_i[0] == pytest.approx(8 * force / (np.pi * d * t), rel=0.05)
+    # invariance: a rotated disc under the same platen load shows the same intensity
+    assert centre_i[1] == pytest.approx(centre_i[0], rel=0.03)

@@ -601,12 +601,40 @@ def summarize(settle, load, brk, info, cfg) -> dict:
 
 
 def figures(load, brk, info, cfg, out_dir: Path) -> list[str]:
-    """Snapshots (paper 000 Fig. 7) and the relative mass / speeds (Fig. 8)."""
+    """Snapshots (paper 000 Fig. 7), the relative mass / speeds (Fig. 8) and the force-chain
+    map of the final state (Fig. 17: ``I = sigma_1 - sigma_2`` from each grain's BEM field,
+    :mod:`jaxgran.breakage.photoelastic`), whose statistics go to
+    ``info["force_chains"]``."""
     from .. import plot
+    from ..breakage import photoelastic
     from ..io import world_vertices_np
 
     plt = plot.plt
     out = []
+    field = photoelastic.force_chain_field(
+        load.state,
+        load.params,
+        poisson_ratio=cfg.poisson_ratio,
+        thickness=cfg.thickness,
+        n_elements=cfg.n_elements,
+    )
+    t_end = float(load.state.time) - info["load_start_time"]
+    path = photoelastic.plot_force_chain_field(
+        load.state,
+        field,
+        Path(out_dir) / "force_chains.png",
+        title=f"{cfg.method}: I = sigma_1 - sigma_2 at t = {t_end:.2f} s (BEM field)",
+    )
+    out.append(str(path))
+    i_kpa = field["intensity"] / 1e3
+    info["force_chains"] = {
+        "t_load_s": t_end,
+        "n_loaded_particles": int(field["n_loaded"]),
+        "n_points": int(i_kpa.size),
+        "I_median_kPa": float(np.median(i_kpa)) if i_kpa.size else 0.0,
+        "I_p99_kPa": float(np.percentile(i_kpa, 99)) if i_kpa.size else 0.0,
+        "I_max_kPa": float(i_kpa.max()) if i_kpa.size else 0.0,
+    }
     snaps = info["snapshots"]
     fig, axes = plt.subplots(1, len(snaps), figsize=(3.2 * len(snaps), 3.4), squeeze=False)
     uid0 = set(np.asarray(snaps[0]["uid"])[np.asarray(snaps[0]["active"])].tolist())
@@ -692,6 +720,7 @@ def run(
         out_dir, "oedometer_cantor", cfg, load, brk.params, summary, events=brk.events, vtk=vtk
     )
     summary["figures"] = list(summary.get("figures", [])) + figs
+    summary["force_chains"] = info.get("force_chains")
     from .. import io
 
     io.write_summary(out_dir / "summary.json", summary)

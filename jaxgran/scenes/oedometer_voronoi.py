@@ -175,6 +175,7 @@ def run(
         out_dir, "oedometer_voronoi", cfg, load, brk.params, summary, events=brk.events, vtk=vtk
     )
     summary["figures"] = list(summary.get("figures", [])) + figs
+    summary["force_chains"] = info.get("force_chains")
     from .. import io
 
     io.write_summary(out_dir / "summary.json", summary)
