@@ -242,6 +242,40 @@ def test_a_run_forked_before_its_first_breakage_goes_on_as_the_run(quick_split, 
         oc.fork_checkpoint(src, dst, QUICK_SPLIT, dataclasses.replace(mc, seed=1))
 
 
+def test_compare_tallies_what_the_runs_did(quick_split, tmp_path):
+    from jaxgran.compare import compare
+    from jaxgran.scenes.base import write_outputs
+
+    (settle, load, brk, info), _, _, _ = quick_split
+    summary = oc.summarize(settle, load, brk, info, QUICK_SPLIT)
+    run_dir = tmp_path / "split-cell"
+    write_outputs(
+        run_dir,
+        "oedometer_cantor",
+        QUICK_SPLIT,
+        load,
+        brk.params,
+        summary,
+        events=brk.events,
+        figures=False,
+    )
+    markdown, rows, fig = compare([run_dir, run_dir])
+    r = rows[0]
+    assert r["n_events"] == len(brk.events) >= 1
+    # each event takes its parent out and puts its fragments in
+    n0 = int(np.asarray(settle.state.particles.active).sum())
+    n1 = int(np.asarray(load.state.particles.active).sum())
+    assert n1 - n0 == r["n_fragments"] - r["n_events"]
+    # split-cell: one plane per event, counted at a and a + 180 deg in the polar histogram
+    assert sum(r["plane_counts"]) == 2 * r["n_events"]
+    assert r["finite"] is True and r["escaped"] is False
+    assert r["ke_peak_max_J"] == max(s["peak"] for s in summary["ke_spikes"])
+    assert rows[1] == rows[0]  # the analysis reads the files alone
+    assert markdown.count("| split-cell | split-cell |") == 2
+    # two rows of panels: patterns above, PSD and polar histograms below
+    assert len(fig.axes) == 2 + 3
+
+
 @pytest.mark.parametrize("floor", [-0.1, 1.5, float("nan")])
 def test_oedometer_rejects_a_bad_fragment_radius_floor_before_settling(floor):
     cfg = dataclasses.replace(oc.Config(), fragment_radius_floor=floor)
