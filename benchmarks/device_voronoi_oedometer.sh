@@ -9,6 +9,12 @@
 # Writes, under $OUT: <method>.tgz (the run folder, checkpoint or summary + run.h5 + figures
 # once finished, and the run's log) and gpu.txt (device, versions, wall time, last progress
 # lines): five files, inside the device tool's limit of eight.
+# To go on with runs of this machine's runs/voronoi_30mm there: pack each run folder as
+#   mkdir -p voronoi_carry; echo /voronoi_carry/ >> .git/info/exclude
+#   for m in dsm split-cell cross-cut mohr-coulomb; do
+#     tar czf voronoi_carry/$m.tgz -C runs/voronoi_30mm $m; done
+# and name voronoi_carry in the device call's carry; back here, unpack the returned
+# <method>.tgz into runs/voronoi_30mm and rerun run_voronoi_oedometer.py (it collects).
 # FORK_FROM=dsm starts the methods without a checkpoint from that method's checkpoint
 # (taken before any breakage; oedometer_cantor.fork_checkpoint), before any run goes on.
 # Runs the repository's own jaxgran from the source tree (PYTHONPATH): the machine's Python
@@ -24,8 +30,9 @@ RUNS=${RUNS:-/tmp/voronoi_runs}
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 export JAX_PLATFORMS=${JAX_PLATFORMS:-cuda} XLA_PYTHON_CLIENT_PREALLOCATE=false
 mkdir -p "$RUNS" "$OUT"
-# checkpoints carried from an earlier call (folder voronoi_carry/<method>/checkpoint.pkl)
-if [ -d voronoi_carry ]; then cp -r voronoi_carry/. "$RUNS"/; fi
+# runs carried from an earlier call or from this machine: voronoi_carry/<method>.tgz as
+# written below (a checkpoint compresses about 5x), named in the device call's carry
+for f in voronoi_carry/*.tgz; do [ -e "$f" ] && tar xzf "$f" -C "$RUNS"; done
 {
   date -u
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
