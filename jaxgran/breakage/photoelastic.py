@@ -40,47 +40,53 @@ def force_chain_field(
         poisson_ratio: nu of the grains (-).
         thickness: out-of-plane thickness (m): stresses are force per unit thickness / t.
         n_elements, n_points: boundary elements and sample points per particle.
-        max_contacts: contact list per particle; a particle with more vertex contacts
-            raises (its field would miss forces).
+        max_contacts: contact list per particle to start with; grown to the next power
+            of two when a particle has more vertex contacts (its field would miss forces).
         plane: ``"stress"`` or ``"strain"``.
 
     Returns:
         ``points [N, 2]`` (m, world frame), ``intensity [N]`` (Pa), ``slot [N]`` (particle
         of each point), ``mean [P]`` (Pa, the mean of each particle's points; 0 for a
-        particle with fewer than two contacts, which carries no field) and ``n_loaded``.
+        particle with fewer than two contacts, which carries no field), ``n_loaded`` and
+        ``skipped``: ``(slot, reason)`` of the loaded particles whose field the BEM refused
+        (a map is a diagnostic: it reports them rather than fail a finished run).
     """
     p = state.particles
     dt = p.pos.dtype
     one = np.ones((), dtype=np.dtype(str(dt)))
-    tab = contact_table(state, params, one, 0.0 * one, one, thickness * one, int(max_contacts))
-    count = np.asarray(tab["count"])
     active = np.asarray(p.active)
-    if (count[active] > max_contacts).any():
-        raise ValueError(
-            f"a particle has {int(count[active].max())} vertex contacts, more than "
-            f"max_contacts={max_contacts}; raise max_contacts"
-        )
+    k = int(max_contacts)
+    while True:
+        tab = contact_table(state, params, one, 0.0 * one, one, thickness * one, k)
+        need = int(np.asarray(tab["count"])[active].max(initial=0))
+        if need <= k:
+            break
+        k = 1 << (need - 1).bit_length()  # the longest list, as the DSM grows it
     mask = np.asarray(tab["mask"])
     cps, cfs = np.asarray(tab["points"], float), np.asarray(tab["forces"], float)
     verts, n_verts = np.asarray(p.verts, float), np.asarray(p.n_verts)
     radius, pos, angle = np.asarray(p.radius, float), np.asarray(p.pos, float), np.asarray(p.angle)
     mean = np.zeros(active.shape[0])
-    pts_all, i_all, slot_all = [], [], []
+    pts_all, i_all, slot_all, skipped = [], [], [], []
     for s in np.flatnonzero(active & (mask.sum(axis=1) >= 2)).tolist():
         v = verts[s, : n_verts[s]]
         m = mask[s]
         pts, _ = bem.sample_points(v, radius[s], n_elements, n_points=n_points)
-        sig = bem.stress_field(
-            v,
-            cps[s][m],
-            cfs[s][m],
-            pts,
-            poisson_ratio=poisson_ratio,
-            plane=plane,
-            n_elements=n_elements,
-            thickness=thickness,
-            radius=radius[s],
-        )
+        try:
+            sig = bem.stress_field(
+                v,
+                cps[s][m],
+                cfs[s][m],
+                pts,
+                poisson_ratio=poisson_ratio,
+                plane=plane,
+                n_elements=n_elements,
+                thickness=thickness,
+                radius=radius[s],
+            )
+        except ValueError as err:  # e.g. a contact point off the outline (deep overlap)
+            skipped.append((s, str(err)))
+            continue
         intensity = 2.0 * np.hypot(0.5 * (sig[:, 0] - sig[:, 1]), sig[:, 2])
         c, sn = np.cos(angle[s]), np.sin(angle[s])
         world = pts @ np.array([[c, sn], [-sn, c]]) + pos[s]
@@ -96,6 +102,7 @@ def force_chain_field(
             "slot": np.zeros(0, int),
             "mean": mean,
             "n_loaded": 0,
+            "skipped": skipped,
         }
     return {
         "points": np.concatenate(pts_all),
@@ -103,6 +110,7 @@ def force_chain_field(
         "slot": np.concatenate(slot_all),
         "mean": mean,
         "n_loaded": len(pts_all),
+        "skipped": skipped,
     }
 
 

@@ -611,30 +611,37 @@ def figures(load, brk, info, cfg, out_dir: Path) -> list[str]:
 
     plt = plot.plt
     out = []
-    field = photoelastic.force_chain_field(
-        load.state,
-        load.params,
-        poisson_ratio=cfg.poisson_ratio,
-        thickness=cfg.thickness,
-        n_elements=cfg.n_elements,
-    )
     t_end = float(load.state.time) - info["load_start_time"]
-    path = photoelastic.plot_force_chain_field(
-        load.state,
-        field,
-        Path(out_dir) / "force_chains.png",
-        title=f"{cfg.method}: I = sigma_1 - sigma_2 at t = {t_end:.2f} s (BEM field)",
-    )
-    out.append(str(path))
-    i_kpa = field["intensity"] / 1e3
-    info["force_chains"] = {
-        "t_load_s": t_end,
-        "n_loaded_particles": int(field["n_loaded"]),
-        "n_points": int(i_kpa.size),
-        "I_median_kPa": float(np.median(i_kpa)) if i_kpa.size else 0.0,
-        "I_p99_kPa": float(np.percentile(i_kpa, 99)) if i_kpa.size else 0.0,
-        "I_max_kPa": float(i_kpa.max()) if i_kpa.size else 0.0,
-    }
+    try:
+        field = photoelastic.force_chain_field(
+            load.state,
+            load.params,
+            poisson_ratio=cfg.poisson_ratio,
+            thickness=cfg.thickness,
+            n_elements=cfg.n_elements,
+        )
+    except (ValueError, RuntimeError) as err:  # a diagnostic must not lose a finished run
+        info["force_chains"] = {"t_load_s": t_end, "error": str(err)}
+        field = None
+    if field is not None:
+        path = photoelastic.plot_force_chain_field(
+            load.state,
+            field,
+            Path(out_dir) / "force_chains.png",
+            title=f"{cfg.method}: I = sigma_1 - sigma_2 at t = {t_end:.2f} s (BEM field)",
+        )
+        out.append(str(path))
+        i_kpa = field["intensity"] / 1e3
+        info["force_chains"] = {
+            "t_load_s": t_end,
+            "n_loaded_particles": int(field["n_loaded"]),
+            "n_skipped": len(field["skipped"]),
+            "skipped": [f"slot {k}: {why}" for k, why in field["skipped"][:10]],
+            "n_points": int(i_kpa.size),
+            "I_median_kPa": float(np.median(i_kpa)) if i_kpa.size else 0.0,
+            "I_p99_kPa": float(np.percentile(i_kpa, 99)) if i_kpa.size else 0.0,
+            "I_max_kPa": float(i_kpa.max()) if i_kpa.size else 0.0,
+        }
     snaps = info["snapshots"]
     fig, axes = plt.subplots(1, len(snaps), figsize=(3.2 * len(snaps), 3.4), squeeze=False)
     uid0 = set(np.asarray(snaps[0]["uid"])[np.asarray(snaps[0]["active"])].tolist())
