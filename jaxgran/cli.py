@@ -71,6 +71,11 @@ def main(argv: list[str] | None = None) -> int:
     cmp_p.add_argument("runs", nargs="+", type=Path, help="run folders (with summary.json)")
     cmp_p.add_argument("--out", type=Path, default=Path("compare"), help="output folder")
 
+    prog_p = sub.add_parser(
+        "progress", help="how far an interrupted or running long scene has got (its checkpoint)"
+    )
+    prog_p.add_argument("path", type=Path, help="OUT folder of the run, or its checkpoint.pkl")
+
     sub.add_parser("info", help="versions, devices, precision")
     sub.add_parser("scenes", help="list the scenes")
 
@@ -83,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
         return _compare(args)
     if args.command == "calibrate-eps":
         return _calibrate(args)
+    if args.command == "progress":
+        return _progress(args.path)
     if args.command == "info":
         return _info()
     if args.command == "scenes":
@@ -93,6 +100,27 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:24s} {doc}")
         return 0
     return 2
+
+
+def _progress(path: Path) -> int:
+    import json
+
+    _enable_x64(True)  # the arrays are read, not computed with
+    from .scenes.oedometer_cantor import checkpoint_progress
+
+    ckpt = path / "checkpoint.pkl" if path.is_dir() else path
+    if not ckpt.exists():
+        done = path / "summary.json" if path.is_dir() else None
+        state = "finished (summary.json, no checkpoint)" if done and done.exists() else "none"
+        print(f"{path}: no checkpoint; {state}", file=sys.stderr)
+        return 1
+    try:
+        info = checkpoint_progress(ckpt)
+    except (ValueError, KeyError, EOFError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(info, indent=2))
+    return 0
 
 
 def _run(args) -> int:

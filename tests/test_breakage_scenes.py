@@ -216,6 +216,16 @@ def test_a_run_forked_before_its_first_breakage_goes_on_as_the_run(quick_split, 
     dst = tmp_path / "fork.pkl"
     origin = oc.fork_checkpoint(src, dst, QUICK_SPLIT, QUICK_SPLIT)
     assert origin["method"] == "split-cell" and origin["t_load"] > 0.0
+    # `jaxgran progress` reads where a checkpoint stands
+    got = oc.checkpoint_progress(src)
+    assert got["method"] == "split-cell" and got["events"] == 0 and got["x64"]
+    assert got["t_load_s"] == origin["t_load"] and 0 < got["done_fraction"] < 1
+    assert got["load_time_s"] == QUICK_SPLIT.load_time and got["forked_from"] is None
+    assert oc.checkpoint_progress(dst)["forked_from"] == origin
+    from jaxgran.cli import main
+
+    assert main(["progress", str(src)]) == 0
+    assert main(["progress", str(tmp_path / "nowhere")]) == 1
     settle2, load2, brk2, info2 = oc.simulate_test(
         QUICK_SPLIT, checkpoint=dst, checkpoint_every_s=1e9, resume=True
     )

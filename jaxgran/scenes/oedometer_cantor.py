@@ -489,6 +489,41 @@ def fork_checkpoint(src, dst, cfg_src, cfg_dst, build_fn=None) -> dict:
     return origin
 
 
+def checkpoint_progress(path) -> dict:
+    """How far the loading of a :func:`simulate_test` checkpoint has got (for ``jaxgran
+    progress``): method, loading time done and asked (s), breakage events, suppressed
+    decisions, particles, the current dt (s), wall time so far (s) and where the run was
+    forked from. Reads the file without checking its configuration against any run (only
+    the format); unpickles, so read only your own files."""
+    import pickle
+
+    from .. import io
+
+    with open(path, "rb") as fh:
+        blob = pickle.load(fh)
+    if not isinstance(blob, dict) or blob.get("format") != io.CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a jaxgran checkpoint of format {io.CHECKPOINT_FORMAT}")
+    cfg, pay = blob["key"]["config"], blob["payload"]
+    ctx, sim = pay["context"], pay["simulate"]
+    t_load = float(sim["state"].time) - float(ctx["t0"])
+    brk = ctx["brk"]
+    return {
+        "scene": blob["key"].get("build") or "oedometer_cantor",
+        "method": cfg["method"],
+        "t_load_s": t_load,
+        "load_time_s": float(cfg["load_time"]),
+        "done_fraction": t_load / float(cfg["load_time"]),
+        "bar_speed_m_s": float(cfg["bar_speed"]),
+        "events": len(brk.events),
+        "suppressed": len(getattr(brk, "suppressed", [])),
+        "particles": int(np.asarray(sim["state"].particles.active).sum()),
+        "dt_s": float(ctx["params"].dt),
+        "wall_time_s": float(sim["wall_time_s"]),
+        "forked_from": ctx.get("forked_from"),
+        "x64": bool(pay.get("x64", True)),
+    }
+
+
 def _min_radius(cfg) -> float | None:
     """Floor (m) of the fragments' adaptive sphero-radius, None when they keep the parent's."""
     f = float(getattr(cfg, "fragment_radius_floor", 0.0))
