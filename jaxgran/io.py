@@ -801,20 +801,28 @@ def save_checkpoint(path: str | os.PathLike, key: Any, payload: Any) -> None:
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | os.PathLike, key: Any) -> Any:
-    """The payload saved by :func:`save_checkpoint` at ``path``. Raises ``ValueError`` if
-    the file was written by another format version or for another ``key`` (a checkpoint of
-    a run with other settings must not be continued silently). Only load files you wrote:
-    this unpickles."""
+def read_checkpoint(path: str | os.PathLike) -> tuple[Any, Any]:
+    """``(key, payload)`` of a file written by :func:`save_checkpoint`, the key not checked
+    against any run (for a progress report); raises ``ValueError`` for another format
+    version. Only read files you wrote: this unpickles."""
     import pickle
 
     with open(path, "rb") as fh:
         blob = pickle.load(fh)
     if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a jaxgran checkpoint of format {CHECKPOINT_FORMAT}")
-    if blob["key"] != key:
+    return blob["key"], blob["payload"]
+
+
+def load_checkpoint(path: str | os.PathLike, key: Any) -> Any:
+    """The payload saved by :func:`save_checkpoint` at ``path``. Raises ``ValueError`` if
+    the file was written by another format version or for another ``key`` (a checkpoint of
+    a run with other settings must not be continued silently). Only load files you wrote:
+    this unpickles."""
+    saved_key, payload = read_checkpoint(path)
+    if saved_key != key:
         raise ValueError(
             f"{path}: the checkpoint belongs to a run with other settings; delete it or run "
             "without resume"
         )
-    return blob["payload"]
+    return payload

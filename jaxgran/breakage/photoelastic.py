@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import bem
+from ..io import world_vertices_np
 from ..state import Params, SimState
 from .dsm import contact_table
 
@@ -88,26 +89,14 @@ def force_chain_field(
             skipped.append((s, str(err)))
             continue
         intensity = 2.0 * np.hypot(0.5 * (sig[:, 0] - sig[:, 1]), sig[:, 2])
-        c, sn = np.cos(angle[s]), np.sin(angle[s])
-        world = pts @ np.array([[c, sn], [-sn, c]]) + pos[s]
-        pts_all.append(world)
+        pts_all.append(world_vertices_np(pts[None], None, pos[s][None], angle[s][None])[0])
         i_all.append(intensity)
         slot_all.append(np.full(len(pts), s))
         mean[s] = float(intensity.mean())
-    if not pts_all:
-        empty = np.zeros((0, 2))
-        return {
-            "points": empty,
-            "intensity": np.zeros(0),
-            "slot": np.zeros(0, int),
-            "mean": mean,
-            "n_loaded": 0,
-            "skipped": skipped,
-        }
     return {
-        "points": np.concatenate(pts_all),
-        "intensity": np.concatenate(i_all),
-        "slot": np.concatenate(slot_all),
+        "points": np.concatenate(pts_all) if pts_all else np.zeros((0, 2)),
+        "intensity": np.concatenate(i_all) if i_all else np.zeros(0),
+        "slot": np.concatenate(slot_all) if slot_all else np.zeros(0, int),
         "mean": mean,
         "n_loaded": len(pts_all),
         "skipped": skipped,
@@ -119,7 +108,6 @@ def plot_force_chain_field(state: SimState, field: dict, path: str | Path, title
     colour scale clipped at the 99th percentile), over the particle outlines. Returns the
     path written."""
     from .. import plot
-    from ..io import world_vertices_np
 
     plt = plot.plt
     p = state.particles

@@ -495,20 +495,15 @@ def checkpoint_progress(path) -> dict:
     decisions, particles, the current dt (s), wall time so far (s) and where the run was
     forked from. Reads the file without checking its configuration against any run (only
     the format); unpickles, so read only your own files."""
-    import pickle
-
     from .. import io
 
-    with open(path, "rb") as fh:
-        blob = pickle.load(fh)
-    if not isinstance(blob, dict) or blob.get("format") != io.CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a jaxgran checkpoint of format {io.CHECKPOINT_FORMAT}")
-    cfg, pay = blob["key"]["config"], blob["payload"]
+    key, pay = io.read_checkpoint(path)
+    cfg = key["config"]
     ctx, sim = pay["context"], pay["simulate"]
     t_load = float(sim["state"].time) - float(ctx["t0"])
     brk = ctx["brk"]
     return {
-        "scene": blob["key"].get("build") or "oedometer_cantor",
+        "scene": key.get("build") or "oedometer_cantor",
         "method": cfg["method"],
         "t_load_s": t_load,
         "load_time_s": float(cfg["load_time"]),
