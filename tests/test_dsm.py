@@ -202,6 +202,15 @@ def test_two_neighbours_on_one_corner_do_not_break_a_lightly_loaded_particle():
     assert saddles[0].size >= 8 and np.all(np.isfinite(saddles[0]))
     assert saddles[0].max() < 0.2 * eps
     np.testing.assert_allclose(saddles[1], 2.0 * saddles[0], rtol=1e-6)
+    # an operator cache smaller than one check's candidates grows to hold them (an LRU
+    # cache cycled through a larger set would rebuild every operator at every check); the
+    # cache changes no number
+    small = DsmBreakage(prm, grid, eps=eps, screen_fraction=0.0, cache_size=4)
+    assert small.check(state) == []
+    assert small.cache_size >= saddles[1].size and len(small._cache) == saddles[1].size
+    assert any("operator cache grown from 4" in m for m in small.log)
+    again = np.array([small.last_saddle[k] for k in sorted(small.last_saddle)])
+    np.testing.assert_array_equal(again, saddles[1])
 
 
 # ----------------------------------------------------------------------------- screening

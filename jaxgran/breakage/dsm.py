@@ -95,6 +95,9 @@ PAPER_RADIUS = 0.01
 
 # screening rules of DsmBreakage: the proven psi bound, or the contact-force heuristic
 SCREEN_MODES = ("bound", "force")
+# the most memory the per-shape operator cache may take when it grows to hold every particle
+# one check screens (about 0.64 MB per shape at 64 elements and 200 sample points, float64)
+CACHE_BYTES = 2 << 30
 
 
 # ---------------------------------------------------------------------------- calibration
@@ -413,7 +416,10 @@ class DsmBreakage:
         batch_size: particles per BEM batch (fixed, so batches never recompile).
         n_arc: tangent segments per turn of the dilated outline that is cut.
         load_model: BEM contact load model, ``"flamant"`` or ``"element"``.
-        cache_size: per-shape BEM operators kept (least recently used dropped first).
+        cache_size: per-shape BEM operators kept (least recently used dropped first), on the
+            host. It grows to the number of particles one check screens, up to
+            ``CACHE_BYTES`` of operators, with a note: a cache smaller than one check's
+            candidates would rebuild every operator at every check.
         max_events: stop the run once this many breakage events happened (None: never).
         erosion: erosion of the fragments, ``"local"`` (default), ``"uniform"`` or
             ``"none"`` (:func:`~jaxgran.breakage.replace.replace_particles`).
@@ -646,6 +652,7 @@ class DsmBreakage:
             return []
         cand, host = found
         self._fit_elements(state)
+        self._grow_cache(cand.size)
         decisions = []
         for start in range(0, cand.size, self.batch_size):
             rows = np.arange(start, min(start + self.batch_size, cand.size))
@@ -681,6 +688,27 @@ class DsmBreakage:
         return self._prepare(state) if replaced else state
 
     # -------------------------------------------------------------- internals
+
+    def _grow_cache(self, n: int) -> None:
+        """Let the operator cache hold ``n`` shapes (one check's candidates), as far as
+        ``CACHE_BYTES`` allows: an LRU cache smaller than the set it cycles through misses
+        on every access."""
+        if n <= self.cache_size:
+            return
+        entry = next(iter(self._cache.values()), None)
+        per_shape = (
+            sum(v.nbytes for v in entry.values())
+            if entry is not None
+            else 8 * self.n_points * (6 * self.n_elements + 8)
+        )
+        cap = max(self.cache_size, CACHE_BYTES // max(per_shape, 1))
+        new = min(1 << int(math.ceil(math.log2(n))), cap)
+        if new > self.cache_size:
+            self._note(
+                f"operator cache grown from {self.cache_size} to {new} shapes "
+                f"({n} screened in one check, {per_shape / 1e6:.2f} MB each)"
+            )
+            self.cache_size = new
 
     def _note(self, msg: str) -> None:
         log.info(msg)
@@ -744,7 +772,9 @@ class DsmBreakage:
                     continue
                 val = getattr(ops, f.name)
                 if isinstance(val, jax.Array) and val.ndim >= 1 and val.shape[0] == bs:
-                    per[f.name] = val
+                    # one transfer per field and batch; the rows are kept on the host, where
+                    # slicing and stacking cost no dispatch of an eager device op each
+                    per[f.name] = np.asarray(val)
                 else:
                     shared[f.name] = val
             self._ops_static = {
@@ -756,12 +786,12 @@ class DsmBreakage:
                 },
             }
             for t, (_, u) in enumerate(chunk):
-                self._cache[u] = {k: v[t] for k, v in per.items()}
-                self._bound_rows[u] = {k: per[k][t] for k in bem.BOUND_FIELDS}
+                self._cache[u] = {k: v[t].copy() for k, v in per.items()}
+                self._bound_rows[u] = {k: self._cache[u][k] for k in bem.BOUND_FIELDS}
         while len(self._cache) > max(self.cache_size, bs):
             self._cache.popitem(last=False)
         stacked = {
-            k: jnp.stack([self._cache[u][k] for u in uids.tolist()])
+            k: jnp.asarray(np.stack([self._cache[u][k] for u in uids.tolist()]))
             for k in self._cache[int(uids[0])]
         }
         return bem.BemOperators(
