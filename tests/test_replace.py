@@ -10,6 +10,7 @@ import pytest
 from jaxgran import geometry as geo
 from jaxgran.breakage.replace import (
     dilated_outline,
+    fit_vertex_capacity,
     max_overlap,
     merge_small_pieces,
     replace_particle,
@@ -628,10 +629,32 @@ def test_fragment_with_more_vertices_grows_the_vertex_capacity():
     # a corner chip: the big piece is a pentagon (5 > V = 4)
     state, ev = replace_particle(state, 0, _cut(state, 0, [[[0.004, 0.012], [0.012, 0.004]]]))
     p = state.particles
-    assert "vertex capacity 4 -> 8" in ev["capacity_growth"]
-    assert p.verts.shape == (2, 8, 2)
-    assert state.contacts.xi.shape[-1] == 8 and state.contacts.wall_xi.shape[-1] == 8
+    assert "vertex capacity 4 -> 5" in ev["capacity_growth"]  # exactly the need
+    assert p.verts.shape == (2, 5, 2)
+    assert state.contacts.xi.shape[-1] == 5 and state.contacts.wall_xi.shape[-1] == 5
     assert sorted(np.asarray(p.n_verts).tolist()) == [3, 5]
+
+
+def test_fitting_the_vertex_capacity_changes_no_number():
+    """Three squares (4 vertices) held in 8 vertex slots, the middle one turned so its
+    corners press the neighbours, and spinning so the tangential springs load: cut to 4
+    slots, the run goes on bit for bit."""
+    state, params, grid = _row_of_three(1e-5)
+    p = state.particles
+    p = replace(p, angle=p.angle.at[1].set(0.02), omega=p.omega.at[1].set(2.0))
+    state, err = prepare(replace(state, particles=p), params, grid)
+    assert int(err) == 0
+    state, _, err = run_segment(state, params, grid, 2, 50)
+    assert int(err) == 0 and float(jnp.abs(state.contacts.xi).max()) > 0
+    fit = fit_vertex_capacity(state)
+    assert fit.particles.verts.shape[1] == 4 and fit.contacts.xi.shape[-1] == 4
+    assert fit_vertex_capacity(fit) is fit  # nothing left to cut
+    runs = [run_segment(s, params, grid, 2, 50) for s in (state, fit)]
+    assert all(int(err) == 0 for _, _, err in runs)
+    (a, _, _), (b, _, _) = runs
+    for name in ("pos", "angle", "vel", "omega", "force", "torque"):
+        np.testing.assert_array_equal(getattr(a.particles, name), getattr(b.particles, name))
+    np.testing.assert_array_equal(a.contacts.xi[..., :4], b.contacts.xi)
 
 
 def test_bonds_of_a_replaced_particle_break_and_follow_the_capacity():

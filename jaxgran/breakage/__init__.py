@@ -18,6 +18,7 @@ from .dsm import DsmBreakage as DsmBreakage
 from .dsm import calibrate_eps as calibrate_eps
 from .dsm import calibration_report as calibration_report
 from .replace import dilated_outline as dilated_outline
+from .replace import fit_vertex_capacity as fit_vertex_capacity
 from .replace import max_overlap as max_overlap
 from .replace import replace_particle as replace_particle
 from .replace import replace_particles as replace_particles

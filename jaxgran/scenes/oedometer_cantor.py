@@ -265,6 +265,11 @@ def simulate_test(
         settle, ctx, s0 = _settle_and_arm(cfg, build_fn, progress, energy_ledger)
     else:
         settle, ctx, s0 = saved["settle"], saved["context"], None
+        # a checkpoint of a run whose vertex capacity grew by a factor (before exact growth)
+        # steps at the capacity its particles need: a numerical no-op (fit_vertex_capacity)
+        from ..breakage.replace import fit_vertex_capacity
+
+        saved["simulate"]["state"] = fit_vertex_capacity(saved["simulate"]["state"])
     brk, t0, m_mean = ctx["brk"], ctx["t0"], ctx["m_mean"]
 
     def step_callback(s, rec):
