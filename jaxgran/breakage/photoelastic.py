@@ -73,6 +73,9 @@ def force_chain_field(
         v = verts[s, : n_verts[s]]
         m = mask[s]
         pts, _ = bem.sample_points(v, radius[s], n_elements, n_points=n_points)
+        if len(pts) == 0:  # a chip thinner than the band kept clear of the outline
+            skipped.append((s, "no sample point inside (grain too small for n_elements)"))
+            continue
         try:
             sig = bem.stress_field(
                 v,
