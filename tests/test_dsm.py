@@ -330,6 +330,15 @@ def test_force_chain_field_follows_the_brazilian_disc_solution():
             y = xy[axis, 1]
             want = 2 * force / (np.pi * t) * (2 / (d - 2 * y) + 2 / (d + 2 * y))
             np.testing.assert_allclose(field["intensity"][axis], want, rtol=5e-3)
+    # a chip thinner than the band kept clear of its outline (1.5 element lengths) has no
+    # sample point inside: it is skipped, not averaged over nothing (a NaN mean)
+    from jaxgran.breakage import photoelastic
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(photoelastic.bem, "sample_points", lambda *a, **k: (np.zeros((0, 2)), None))
+        chip = force_chain_field(state, params, poisson_ratio=CFG.poisson_ratio, thickness=t)
+    assert chip["n_loaded"] == 0 and chip["intensity"].size == 0
+    assert [s for s, _ in chip["skipped"]] == [0] and np.all(chip["mean"] == 0.0)
     # the mean over r < 0.15 R is within 2 % of the centre value
     assert centre_i[0] == pytest.approx(8 * force / (np.pi * d * t), rel=0.05)
     # invariance: a rotated disc under the same platen load shows the same intensity
