@@ -85,13 +85,18 @@ def summarize_run(run_dir: str | Path) -> dict[str, Any]:
     summary = json.loads((d / "summary.json").read_text())
     run = io.read_run(d / "run.h5")
     events = [e for e in run["events"] if e.get("kind", "breakage") == "breakage"]
-    m0 = summary.get("breakage_types", {}).get("mean_initial_mass")
-    if m0 is None:
-        fr = run["frames"]
-        act = np.asarray(fr["active"][0], bool)
-        m0 = float(np.asarray(fr["mass"][0])[act].mean()) if "mass" in fr else None
-    if m0 is None and events:
-        m0 = float(np.mean([float(e["parent_mass"]) for e in events]))
+    # Table III's m_r is relative to the mean initial particle mass: the scene's own
+    # classification (with that mass) when it covers these events, else recomputed from
+    # the mass the summary records; never from the parents' masses (fragments of fragments
+    # would shift the reference)
+    types = summary.get("breakage_types", {})
+    m0 = summary.get("mean_initial_mass_kg", types.get("mean_initial_mass"))
+    if "percent" in types and types.get("n_events") == len(events):
+        types_percent = dict(types["percent"])
+    elif events and m0:
+        types_percent = metrics.breakage_type_percentages(events, m0)["percent"]
+    else:
+        types_percent = {}
     hist = metrics.fracture_plane_histogram(events)
     lock = metrics.locking_effect(events)
     out: dict[str, Any] = {
@@ -99,9 +104,7 @@ def summarize_run(run_dir: str | Path) -> dict[str, Any]:
         "scene": summary.get("scene", ""),
         "method": summary.get("method", summary.get("config", {}).get("method", "")),
         "n_events": len(events),
-        "types_percent": metrics.breakage_type_percentages(events, m0)["percent"]
-        if events and m0
-        else {},
+        "types_percent": types_percent,
         "mass_lost_fraction": summary.get("mass_lost_fraction"),
         "planes_max_frequency": hist["max_frequency"],
         "planes_dominant_deg": hist["dominant_deg"],

@@ -289,6 +289,19 @@ def test_compare_tallies_what_the_runs_did(quick_split, tmp_path):
     assert sum(r["plane_counts"]) == 2 * r["n_events"]
     assert r["finite"] is True and r["escaped"] is False
     assert r["ke_peak_max_J"] == max(s["peak"] for s in summary["ke_spikes"])
+    # Table III types relative to the mean initial mass, as the scene classified them
+    assert r["types_percent"] == summary["breakage_types"]["percent"]
+    assert summary["mean_initial_mass_kg"] == info["mean_initial_mass"]
+    # without the scene's percentages, compare classifies the events with the summary's mass
+    import json
+    import shutil
+
+    recount = shutil.copytree(run_dir, tmp_path / "recount")
+    saved = json.loads((recount / "summary.json").read_text())
+    del saved["breakage_types"]
+    (recount / "summary.json").write_text(json.dumps(saved))
+    again = compare([recount])[1][0]["types_percent"]
+    assert again == pytest.approx(r["types_percent"], abs=1e-12)
     assert rows[1] == rows[0]  # the analysis reads the files alone
     assert markdown.count("| split-cell | split-cell |") == 2
     # two rows of panels: patterns above, PSD and polar histograms below

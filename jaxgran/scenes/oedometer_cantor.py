@@ -602,6 +602,7 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "forked_from": info.get("forked_from"),
         "n_events": len(ev),
         "breakage_types": types,
+        "mean_initial_mass_kg": info["mean_initial_mass"],  # Table III's reference mass
         "mass_lost_kg": lost,
         "mass_lost_fraction": lost / mass0,
         "mass_fines_fraction": sum(float(e["fines_mass"]) for e in ev) / mass0,
