@@ -64,6 +64,7 @@ def biaxial(args) -> dict:
         strain_rate=args.strain_rate,
         max_strain=args.max_strain,
         record_every=args.record_every,
+        **({"eps_th": args.eps_th} if args.eps_th else {}),
     )
     pressures = _floats(args.pressures)
     seeds = list(range(args.seeds))
@@ -491,6 +492,12 @@ def main() -> None:
     ap.add_argument("--record-every", type=int, default=50)
     ap.add_argument(
         "--figure", default="hoek_brown.png", help="biaxial: envelope figure's name in docs/"
+    )
+    ap.add_argument(
+        "--eps-th",
+        type=float,
+        default=0.0,
+        help="biaxial: bond strain threshold (default: the scene's, paper 002 Table 1)",
     )
     ap.add_argument("--rates", default="10,5", help="p-drift: strain rates (1/s)")
     ap.add_argument("--seed", type=int, default=2, help="p-drift: the one seed")
