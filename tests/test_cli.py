@@ -2,6 +2,7 @@
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -93,6 +94,29 @@ def test_a_finished_run_is_recognised_by_its_configuration(deposit_run):
     )
     assert finished_summary(deposit_run, "oedometer_voronoi", cfg) is None
     assert finished_summary(deposit_run / "nowhere", "deposit", cfg) is None
+
+
+def test_a_finished_runs_figures_are_found_after_the_folder_moved(
+    deposit_run, tmp_path, monkeypatch
+):
+    """A finished run read from another working directory, or after its folder moved,
+    names figures that exist there (its summary stored them relative to where it ran)."""
+    import dataclasses
+    import shutil
+
+    from jaxgran.scenes import deposit as dp
+    from jaxgran.scenes.base import finished_summary
+
+    moved = tmp_path / "elsewhere" / "run"
+    shutil.copytree(deposit_run, moved)
+    summary = json.loads((moved / "summary.json").read_text())
+    summary["figures"] = [f"runs/old_place/{Path(f).name}" for f in summary["figures"]]
+    (moved / "summary.json").write_text(json.dumps(summary))
+    monkeypatch.chdir(tmp_path)
+    cfg = dp.Config(**{**dataclasses.asdict(dp.Config()), **summary["config"]})
+    found = finished_summary(Path("elsewhere/run"), "deposit", cfg)["figures"]
+    assert len(found) == len(summary["figures"]) >= 1
+    assert all(Path(f).is_file() and Path(f).parent == Path("elsewhere/run") for f in found)
 
 
 def test_list_settings_take_any_number_of_values():

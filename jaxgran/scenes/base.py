@@ -153,14 +153,24 @@ def write_outputs(
 
 def finished_summary(out_dir: Path, scene: str, config: Any) -> dict | None:
     """The summary.json in ``out_dir`` if a run of ``scene`` with exactly ``config`` finished
-    there (so that a resumed batch of long runs skips the done ones), else None."""
-    path = Path(out_dir) / "summary.json"
+    there (so that a resumed batch of long runs skips the done ones), else None.
+
+    The figures' paths are given in ``out_dir``: a summary stores them as they were named
+    when the run was made (relative to the directory it was started from), and the folder
+    may since have been moved or be read from another working directory."""
+    out_dir = Path(out_dir)
+    path = out_dir / "summary.json"
     if not path.exists():
         return None
     summary = json.loads(path.read_text())
     want = json.loads(json.dumps(dataclasses.asdict(config), default=float))
     if summary.get("scene") != scene or summary.get("config") != want:
         return None
+    if "figures" in summary:
+        summary["figures"] = [
+            str(out_dir / Path(f).name) if (out_dir / Path(f).name).exists() else f
+            for f in summary["figures"]
+        ]
     return summary
 
 
