@@ -447,6 +447,9 @@ def p_drift(args) -> dict:
     seed, p = int(args.seed), _floats(args.pressures)[0]
     ti = float(args.servo_integral)
     tag = "" if math.isinf(ti) else f"_pi{ti:g}"
+    response = float(args.servo_response) or bx.Config().servo_response
+    if args.servo_response:
+        tag += f"_tau{response:g}"
     path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}{tag}.json"
     rows = json.loads(path.read_text())["runs"] if path.exists() else []
     done = {r["strain_rate"] for r in rows}
@@ -455,7 +458,7 @@ def p_drift(args) -> dict:
             continue
         cfg = dataclasses.replace(
             bx.Config(), n_cells=args.cells, strain_rate=rate, max_strain=args.max_strain,
-            record_every=args.record_every, servo_integral=ti,
+            record_every=args.record_every, servo_integral=ti, servo_response=response,
         )  # fmt: skip
         t0 = time.perf_counter()
         shear, iso, setup, _ = bx.isotropic_then_shear(cfg, [seed], (p,))
@@ -498,6 +501,12 @@ def main() -> None:
         type=float,
         default=0.0,
         help="biaxial: bond strain threshold (default: the scene's, paper 002 Table 1)",
+    )
+    ap.add_argument(
+        "--servo-response",
+        type=float,
+        default=0.0,
+        help="p-drift: servo time constant in wave transits (default: the scene's)",
     )
     ap.add_argument("--rates", default="10,5", help="p-drift: strain rates (1/s)")
     ap.add_argument("--seed", type=int, default=2, help="p-drift: the one seed")

@@ -97,16 +97,6 @@ def _check_jacobian(lab, log_p, names):
     return jac, fd
 
 
-def test_brazilian_gradients_match_central_differences(disc):
-    lab, log_p = disc
-    figs, err = lt.figures(log_p, lab)
-    lt.check_errors(err)
-    assert np.all(np.asarray(figs["sigma_t"]) > 0) and np.all(np.asarray(figs["slope_S"]) > 0)
-    jac, _ = _check_jacobian(lab, log_p, ("sigma_t", "slope_S"))
-    # physics: stiffer contacts and a higher strain threshold make the disc stronger
-    assert jac[0, 0] > 0 and jac[0, 4] > 0
-
-
 @pytest.fixture(scope="module")
 def block_jacobians(block):
     lab, log_p = block
@@ -115,55 +105,69 @@ def block_jacobians(block):
     return figs, *_jacobians(lab, log_p, ("E_c", "nu", "q_peak"))
 
 
-def test_unconfined_gradients_match_central_differences(block_jacobians):
-    figs, jac, fd = block_jacobians
-    assert np.all(np.asarray(figs["E_c"]) > 0)
-    assert np.all(np.abs(np.asarray(figs["nu"])) < 0.5)
-    _assert_close(jac[:2], fd[:2], ("E_c", "nu"))
-    # physics: the modulus grows with the contact stiffness (compression is carried by contacts)
-    assert jac[0, 0] > 0
+class TestBrazilianDisc:
+    """The Brazilian lab: gradients, padding, the hard-model limit (one worker under
+    ``--dist loadscope``; the biaxial block runs beside it on the other)."""
+
+    def test_brazilian_gradients_match_central_differences(self, disc):
+        lab, log_p = disc
+        figs, err = lt.figures(log_p, lab)
+        lt.check_errors(err)
+        assert np.all(np.asarray(figs["sigma_t"]) > 0) and np.all(np.asarray(figs["slope_S"]) > 0)
+        jac, _ = _check_jacobian(lab, log_p, ("sigma_t", "slope_S"))
+        # physics: stiffer contacts and a higher strain threshold make the disc stronger
+        assert jac[0, 0] > 0 and jac[0, 4] > 0
+
+    def test_gradients_are_finite_with_padding_and_touching_cells(self, disc):
+        """The two discs have different bond counts and vertex counts (padded slots with
+        sentinel indices), the pair list and the wall-bond slots are padded, and every cell
+        starts exactly touching its neighbours (zero overlap). The gradient at the start of the
+        run (one segment, nothing broken) and through a whole run must be finite."""
+        lab, log_p = disc
+        real = np.asarray(lab.real_bond)
+        assert (~real).any() and real.sum(axis=1)[0] != real.sum(axis=1)[1]
+        assert not np.asarray(lab.state.bonds.wall_active).any()
+        short = dataclasses.replace(lab, n_segments=1)
+        grad = jax.jit(jax.grad(lambda x: jnp.sum(_means(x, short, ("sigma_t",)))))
+        assert np.all(np.isfinite(np.asarray(grad(log_p))))
+        # a parameter vector with a vanishing friction and equal moduli (touching, degenerate)
+        odd = log_p.at[5].set(jnp.log(1e-12))
+        assert np.all(np.isfinite(np.asarray(grad(odd))))
+
+    def test_zero_width_recovers_the_hard_model(self, disc):
+        """The health surrogate with width w -> 0 converges to hard breakage: the platen force
+        curve differs from the hard model's by less and less, and at w = 1e-9 by round-off
+        only."""
+        lab, log_p = disc
+        _, hard, _ = lt.run(log_p, lt.with_surrogate_width(lab, 0.0))
+        f_hard, _ = lt.platen_curves(hard, lab)
+        f_hard = np.asarray(f_hard)
+        diffs = []
+        for w in (1e-1, 1e-3, 1e-9):
+            _, soft, _ = lt.run(log_p, lt.with_surrogate_width(lab, w))
+            f, _ = lt.platen_curves(soft, lab)
+            diffs.append(np.abs(np.asarray(f) - f_hard).max() / np.abs(f_hard).max())
+        assert diffs[0] > 1e-3  # the surrogate does change the run
+        assert diffs[2] < diffs[1] < diffs[0]
+        assert diffs[2] < 1e-6
 
 
-def test_constant_p_gradients_match_central_differences(block_jacobians):
-    """d q_peak / d (K_n, B_t, eps_th, mu) of the constant-p test by autodiff against central
-    differences. Until the corner weights of the contact law (``contact.corner_weight``)
-    the run sat on a discontinuity at the base point (every difference saw the same jump
-    of ~7e4 Pa, 2e-4 of q_peak): two cell corners switching between one and two contacts."""
-    figs, jac, fd = block_jacobians
-    assert np.all(np.asarray(figs["q_peak"]) > 0)
-    _assert_close(jac[2:], fd[2:], ("q_peak",))
+class TestBiaxialBlock:
+    """The biaxial lab: unconfined and constant-p gradients from one Jacobian."""
 
+    def test_unconfined_gradients_match_central_differences(self, block_jacobians):
+        figs, jac, fd = block_jacobians
+        assert np.all(np.asarray(figs["E_c"]) > 0)
+        assert np.all(np.abs(np.asarray(figs["nu"])) < 0.5)
+        _assert_close(jac[:2], fd[:2], ("E_c", "nu"))
+        # physics: the modulus grows with the contact stiffness (compression is carried by contacts)
+        assert jac[0, 0] > 0
 
-def test_gradients_are_finite_with_padding_and_touching_cells(disc):
-    """The two discs have different bond counts and vertex counts (padded slots with
-    sentinel indices), the pair list and the wall-bond slots are padded, and every cell
-    starts exactly touching its neighbours (zero overlap). The gradient at the start of the
-    run (one segment, nothing broken) and through a whole run must be finite."""
-    lab, log_p = disc
-    real = np.asarray(lab.real_bond)
-    assert (~real).any() and real.sum(axis=1)[0] != real.sum(axis=1)[1]
-    assert not np.asarray(lab.state.bonds.wall_active).any()
-    short = dataclasses.replace(lab, n_segments=1)
-    grad = jax.jit(jax.grad(lambda x: jnp.sum(_means(x, short, ("sigma_t",)))))
-    assert np.all(np.isfinite(np.asarray(grad(log_p))))
-    # a parameter vector with a vanishing friction and equal moduli (touching, degenerate)
-    odd = log_p.at[5].set(jnp.log(1e-12))
-    assert np.all(np.isfinite(np.asarray(grad(odd))))
-
-
-def test_zero_width_recovers_the_hard_model(disc):
-    """The health surrogate with width w -> 0 converges to hard breakage: the platen force
-    curve differs from the hard model's by less and less, and at w = 1e-9 by round-off
-    only."""
-    lab, log_p = disc
-    _, hard, _ = lt.run(log_p, lt.with_surrogate_width(lab, 0.0))
-    f_hard, _ = lt.platen_curves(hard, lab)
-    f_hard = np.asarray(f_hard)
-    diffs = []
-    for w in (1e-1, 1e-3, 1e-9):
-        _, soft, _ = lt.run(log_p, lt.with_surrogate_width(lab, w))
-        f, _ = lt.platen_curves(soft, lab)
-        diffs.append(np.abs(np.asarray(f) - f_hard).max() / np.abs(f_hard).max())
-    assert diffs[0] > 1e-3  # the surrogate does change the run
-    assert diffs[2] < diffs[1] < diffs[0]
-    assert diffs[2] < 1e-6
+    def test_constant_p_gradients_match_central_differences(self, block_jacobians):
+        """d q_peak / d (K_n, B_t, eps_th, mu) of the constant-p test by autodiff against central
+        differences. Until the corner weights of the contact law (``contact.corner_weight``)
+        the run sat on a discontinuity at the base point (every difference saw the same jump
+        of ~7e4 Pa, 2e-4 of q_peak): two cell corners switching between one and two contacts."""
+        figs, jac, fd = block_jacobians
+        assert np.all(np.asarray(figs["q_peak"]) > 0)
+        _assert_close(jac[2:], fd[2:], ("q_peak",))
