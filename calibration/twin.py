@@ -157,8 +157,19 @@ def main(argv=None) -> int:
     ap.add_argument("--max-evaluations", type=int, default=120)
     ap.add_argument("--min-uncertainty", type=float, default=0.01)
     ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument(
+        "--methods",
+        default="gauss_newton,adam",
+        help="gradient fits to run, comma-separated (gauss_newton, adam); Nelder-Mead "
+        "follows unless --no-baseline. Adam needs tens of reverse passes: leave it out of "
+        "large ensembles",
+    )
     ap.add_argument("--out", type=Path, default=Path("twin_out"))
     args = ap.parse_args(argv)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = set(methods) - {"gauss_newton", "adam"}
+    if unknown or not methods:
+        ap.error(f"--methods: choose from gauss_newton, adam (got {args.methods!r})")
 
     import os
 
@@ -206,8 +217,11 @@ def main(argv=None) -> int:
             {k: summary["predicted"][k] for k in ("predicted_relative_std", "linearised_error")}
         ),
     )
-    runs = {"gauss_newton": fit.gauss_newton(problem)}
-    runs["adam"] = fit.adam(problem, learning_rate=args.learning_rate, steps=args.steps)
+    runs = {}
+    if "gauss_newton" in methods:
+        runs["gauss_newton"] = fit.gauss_newton(problem)
+    if "adam" in methods:
+        runs["adam"] = fit.adam(problem, learning_rate=args.learning_rate, steps=args.steps)
     if not args.no_baseline:
         runs["nelder_mead"] = fit.nelder_mead(problem, max_evaluations=args.max_evaluations)
     for name, res in runs.items():
@@ -226,7 +240,8 @@ def main(argv=None) -> int:
         summary[name] = rep
         print(name, rep["relative_error"], rep["simulations"], f"{rep['wall_time_s']:.0f} s")
         print(fit.format_table(rep["table"]))
-    summary["adam"]["uncertainty"] = fit.uncertainty(problem, runs["adam"]["x"])
+    if "adam" in runs:
+        summary["adam"]["uncertainty"] = fit.uncertainty(problem, runs["adam"]["x"])
     label = {
         "gauss_newton": "Gauss-Newton (forward-mode Jacobian)",
         "adam": "Adam (reverse-mode gradient)",
