@@ -149,6 +149,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m calibration.twin", description=__doc__)
     ap.add_argument("--realisations", type=int, default=4)
     ap.add_argument("--cells", type=int, default=30)
+    ap.add_argument("--truth-seeds-from", type=int, default=1000, help="first truth seed")
+    ap.add_argument("--fit-seeds-from", type=int, default=0, help="first seed of the fit")
     ap.add_argument("--strain-rate", type=float, default=80.0)
     ap.add_argument("--width", type=float, default=1.0)
     ap.add_argument("--damping", type=float, default=2.0e4)
@@ -181,8 +183,10 @@ def main(argv=None) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     k = args.realisations
-    truth_seeds = list(range(1000, 1000 + k))
-    fit_seeds = list(range(k))
+    truth_seeds = list(range(args.truth_seeds_from, args.truth_seeds_from + k))
+    fit_seeds = list(range(args.fit_seeds_from, args.fit_seeds_from + k))
+    if set(truth_seeds) & set(fit_seeds):
+        ap.error("the truth and fit seed sets overlap: the twin needs two independent sets")
     opts = scene_options(args.cells, args.strain_rate, args.width, args.damping)
     for scene in fit.SCENES:  # truth and fit share one time step (dt depends on K_n)
         opts[scene]["lab"]["dt"] = fit.common_time_step(scene, opts[scene], [TRUTH, START])

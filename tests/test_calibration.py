@@ -27,6 +27,23 @@ def test_groups_round_trip():
     np.testing.assert_allclose(np.exp(lp), [1.3e8, 1.3e8, 2e10, 2e10, 0.02, 0.3], rtol=1e-12)
 
 
+def test_twin_refuses_overlapping_seed_sets_and_unknown_methods(tmp_path, capsys):
+    """The synthetic twin fits on seeds other than the truth's (else the sampling error it
+    is about vanishes) and runs only the fits it knows."""
+    from calibration import twin
+
+    for argv in (
+        ["--realisations", "4", "--truth-seeds-from", "2", "--fit-seeds-from", "0"],
+        ["--methods", "newton"],
+        ["--methods", ""],
+    ):
+        with pytest.raises(SystemExit) as exc:
+            twin.main([*argv, "--out", str(tmp_path)])
+        assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "overlap" in err and "--methods" in err
+
+
 def test_bad_targets_are_refused():
     with pytest.raises(ValueError, match="unknown target"):
         fit.parse_targets({"strength": {"value": 1.0, "uncertainty": 0.1}})
