@@ -57,6 +57,7 @@ import dataclasses
 import json
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -232,22 +233,41 @@ def build_labs(
     return labs
 
 
-def common_time_step(scene: str, overrides: dict, materials: list[dict], seed: int = 0) -> float:
+def common_time_step(
+    scene: str, overrides: dict, materials: list[dict], seeds: Sequence[int] = (0,)
+) -> float:
     """The smallest default time step (s) of ``scene`` (with ``overrides``) over the group
-    values of ``materials``: give it to every lab (lab option ``dt``) that must share one
-    time discretisation, e.g. a synthetic twin's truth and fit."""
+    values of ``materials`` and the specimens of ``seeds``: give it to every lab (lab option
+    ``dt``) that must share one time discretisation, e.g. a synthetic twin's truth and fit,
+    and pass the seeds of all of them (the stable step is set by each specimen's stiffest,
+    lightest cell, so one seed's step can be too long for another's)."""
     from jaxgran import labtests as lt
+    from jaxgran.scenes import bonded as bd
     from jaxgran.scenes import bonded_biaxial as bx
     from jaxgran.scenes import bonded_brazilian as bz
+    from jaxgran.state import replace
 
+    seeds = sorted({int(s) for s in seeds})
+    if not seeds or not materials:
+        raise ValueError("common_time_step needs at least one seed and one material")
     cfg, _ = _scene_config(scene, overrides)
+    cfgs = [
+        lt.material_with(cfg, np.asarray(groups_to_log_params(groups_from_values(m))))
+        for m in materials
+    ]
+    # the specimens once; each material's bond moduli are set on them (masses and shapes
+    # do not depend on the fitted groups)
+    if scene == "bonded-brazilian":
+        states = bz.build(cfgs[0], seeds=seeds).states
+    else:
+        states = bx.build(cfgs[0], [(s, 0.0) for s in seeds]).states
     dts = []
-    for m in materials:
-        c = lt.material_with(cfg, np.asarray(groups_to_log_params(groups_from_values(m))))
-        if scene == "bonded-brazilian":
-            dts.append(float(bz.build(c, seeds=[seed]).params.dt))
-        else:
-            dts.append(float(bx.build(c, [(seed, 0.0)]).params.dt))
+    for c in cfgs:
+        mat = bd.material_from(c)
+        for st in states:
+            b = st.bonds
+            bonds = replace(b, b_n=np.full(b.b_n.shape, mat.b_n), b_t=np.full(b.b_t.shape, mat.b_t))
+            dts.append(bd.stable_dt(st.particles, bonds, mat, c.dt_safety))
     return min(dts)
 
 

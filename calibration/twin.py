@@ -189,7 +189,9 @@ def main(argv=None) -> int:
         ap.error("the truth and fit seed sets overlap: the twin needs two independent sets")
     opts = scene_options(args.cells, args.strain_rate, args.width, args.damping)
     for scene in fit.SCENES:  # truth and fit share one time step (dt depends on K_n)
-        opts[scene]["lab"]["dt"] = fit.common_time_step(scene, opts[scene], [TRUTH, START])
+        opts[scene]["lab"]["dt"] = fit.common_time_step(
+            scene, opts[scene], [TRUTH, START], seeds=truth_seeds + fit_seeds
+        )
     t0 = time.perf_counter()
     names, tvals = truth_values(TRUTH, truth_seeds, opts)
     targets = targets_from_values(names, tvals, args.min_uncertainty)

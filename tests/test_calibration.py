@@ -44,6 +44,34 @@ def test_twin_refuses_overlapping_seed_sets_and_unknown_methods(tmp_path, capsys
     assert "overlap" in err and "--methods" in err
 
 
+def test_common_time_step_is_the_smallest_over_every_seed_and_material():
+    """The step that a twin's truth and fit share is the smallest default step over the
+    materials and the specimens of all seeds (each seed's own step can be too long for
+    another seed: a 256-specimen twin stopped on that). Building the specimens once and
+    setting each material's bond moduli on them gives what each scene build gives."""
+    from jaxgran import labtests as lt
+    from jaxgran.scenes import bonded_brazilian as bz
+
+    mats = [TRUE, TRUE | {"K_n": 1.0e8, "B_n/B_t": 2.0}]
+    seeds = [0, 1, 2, 3, 4, 5]
+    dt = fit.common_time_step("bonded-brazilian", SCENE, mats, seeds=seeds)
+    cfg, _ = fit._scene_config("bonded-brazilian", SCENE)
+    each = [
+        float(
+            bz.build(
+                lt.material_with(cfg, fit.groups_to_log_params(fit.groups_from_values(m))),
+                seeds=[s],
+            ).params.dt
+        )
+        for m in mats
+        for s in seeds
+    ]
+    assert dt == pytest.approx(min(each), rel=1e-12)
+    assert dt < max(each)  # the specimens differ: not every seed's step would do
+    with pytest.raises(ValueError, match="at least one seed"):
+        fit.common_time_step("bonded-brazilian", SCENE, mats, seeds=[])
+
+
 def test_bad_targets_are_refused():
     with pytest.raises(ValueError, match="unknown target"):
         fit.parse_targets({"strength": {"value": 1.0, "uncertainty": 0.1}})
@@ -66,7 +94,7 @@ def identical_twin():
         "bonded-brazilian": SCENE,
     }
     # one time step for truth and fit (the default one depends on K_n)
-    dt = fit.common_time_step("bonded-brazilian", SCENE, [TRUE, TRUE | {"K_n": 1.0e8}])
+    dt = fit.common_time_step("bonded-brazilian", SCENE, [TRUE, TRUE | {"K_n": 1.0e8}], seeds=[3])
     spec["bonded-brazilian"] = SCENE | {"lab": SCENE["lab"] | {"dt": dt}}
     truth = fit.make_problem(spec, ["bonded-brazilian"], 1, seeds=[3], peak_from_targets=False)
     _, fwd = fit.make_functions(truth)
