@@ -88,6 +88,13 @@ _GRID_REACH = 2.0
 # Angular groups of sample points in the screening bound (psi_bound): more groups, a tighter
 # bound and a larger table [P, N, G].
 _SCREEN_GROUPS = 8
+# Force directions (over a half turn) at which the screening tables sample each element's
+# response; a force between two of them is bounded from those two (``_direction_weights``),
+# within 1 / cos(pi / (2 K)) of its own direction's value (8 % at K = 4).
+_SCREEN_DIRECTIONS = 4
+# Positions along each element's chord at which the Flamant table places the load; a contact
+# between them (or off the chord) is covered by the Lipschitz margin of ``_bound_terms``.
+_CHORD_SAMPLES = 8
 
 
 def _safe_norm(v: jnp.ndarray) -> jnp.ndarray:
@@ -1033,8 +1040,11 @@ class BemOperators(eqx.Module):
         centres: mean of the nodes ``[P, 2]`` (m), inside each outline.
         node_angles: polar angles of the nodes about ``centres`` ``[P, N]`` (rad), increasing
             from node 0; a contact's element is found from its angle (C x N comparisons).
-        screen_table: ``[P, N, G, 4]``: per element and group of sample points (G angular
-            sectors) the numbers of the screening bound ``psi_bound`` (``_screen_tables``).
+        screen_table: ``[P, N, G, 2 + 2 K]``: per element and group of sample points (G
+            angular sectors) the numbers of the screening bound ``psi_bound``
+            (``_screen_tables``; K = ``_SCREEN_DIRECTIONS``).
+        screen_coarse: ``[P, N, 1 + 2 K]``: one row per element for the first, cheaper level
+            of ``screen`` (``_coarse_rows``).
         angle_bins: ``[P, 4 N]`` (int): element at the start of each of 4 N equal angle bins
             from node 0, -1 where a bin holds more than ``_BIN_SPAN`` nodes (then the
             element lookup of ``psi_bound_flat`` compares with every node instead).
@@ -1056,6 +1066,7 @@ class BemOperators(eqx.Module):
     centres: jax.Array
     node_angles: jax.Array
     screen_table: jax.Array
+    screen_coarse: jax.Array
     angle_bins: jax.Array
     poisson_ratio: jax.Array
     plane: str = eqx.field(static=True)
@@ -1071,19 +1082,37 @@ def _psi_form(poisson_ratio, plane: str, dtype) -> jnp.ndarray:
     return 0.5 * (pair - diag[:, None] - diag[None, :])
 
 
+def _half_turn_directions(dtype) -> jnp.ndarray:
+    """``[K, 2]`` unit vectors at angles k pi / K, k = 0..K-1 (K = ``_SCREEN_DIRECTIONS``)."""
+    phi = jnp.arange(_SCREEN_DIRECTIONS, dtype=dtype) * (math.pi / _SCREEN_DIRECTIONS)
+    return jnp.stack([jnp.cos(phi), jnp.sin(phi)], axis=-1)
+
+
 def _screen_tables(k_f, nodes, points, mask, centre, q, n_groups: int):
     """Per element e and group g of sample points, the numbers ``psi_bound`` needs.
 
-    Groups are angular sectors of the sample points about ``centre``. For a point p of the
-    group, d = its distance to the element's chord (segment) and h = its distance to the
-    chord's line on the inner side. Returns ``[N, G, 4]``: (max over the group of the
-    operator norm, in the psi norm, of the 3 x 2 block ``k_f[e, :, p, :]`` (1/m);
-    max h / d^2 (1/m); min d (m); min h (m)); an empty group gives (0, 0, +inf, +inf).
+    Groups are angular sectors of the sample points about ``centre``. With u_k the K unit
+    vectors of ``_half_turn_directions`` and x_s the ``_CHORD_SAMPLES`` midpoints of equal
+    parts of the element's chord, returns ``[N, G, 2 + 2 K]``: (max over the group of the
+    operator norm, in the psi norm, of the 3 x 2 block ``k_f[e, :, p, :]`` (1/m); min over
+    the group of the distance d of p to the chord (m); for each k the max over the group of
+    psi(``k_f[e, :, p, :]`` u_k) (1/m); for each k the max over the group and the x_s of
+    |u_k . (p - x_s)| / |p - x_s|^2 (1/m), the direction factor of the Flamant field of a
+    load at x_s). An empty group gives (0, +inf, 0..., 0...).
+
+    Both directional columns are values at u_k of functions that are norms of the force
+    direction (a maximum of norms of linear maps), so ``_direction_weights`` may interpolate
+    them.
     """
+    dtype = k_f.dtype
+    u = _half_turn_directions(dtype)  # [K, 2]
     gram = jnp.einsum("ekmi,ij,elmj->emkl", k_f, q, k_f)  # [N, M, 2, 2]
     a, b, c = gram[..., 0, 0], gram[..., 0, 1], gram[..., 1, 1]
     lam = 0.5 * (a + c) + jnp.sqrt(0.25 * (a - c) ** 2 + b * b)
     op = jnp.sqrt(jnp.maximum(lam, 0.0))  # [N, M]
+    # psi of the remainder per unit force along u_k: sqrt(u^T gram u)
+    quad = jnp.einsum("kx,emxy,ky->ekm", u, gram, u)
+    rem = jnp.sqrt(jnp.maximum(quad, 0.0))  # [N, K, M]
     d = points - centre
     ang = jnp.arctan2(d[:, 1], d[:, 0])
     grp = jnp.clip(jnp.floor((ang + math.pi) / _TWO_PI * n_groups), 0, n_groups - 1)
@@ -1093,17 +1122,42 @@ def _screen_tables(k_f, nodes, points, mask, centre, q, n_groups: int):
     rel = points[None] - a0[:, None]  # [N, M, 2]
     t = _safe_div(jnp.sum(rel * ab[:, None], -1), jnp.sum(ab * ab, -1)[:, None])
     dist = _safe_norm(rel - jnp.clip(t, 0.0, 1.0)[..., None] * ab[:, None])  # [N, M]
-    inward = _perp(ab) / jnp.maximum(_safe_norm(ab), 1e-300)[:, None]  # CCW: left is inside
-    h = jnp.sum(rel * inward[:, None], -1)
-    ratio = h / jnp.where(dist > 0, dist, 1.0) ** 2
+    # Flamant direction factor: the inversion w / |w|^2 of w = p - x_s, projected on u_k
+    frac = (jnp.arange(_CHORD_SAMPLES, dtype=dtype) + 0.5) / _CHORD_SAMPLES
+    xs = a0[:, None, :] + frac[None, :, None] * ab[:, None, :]  # [N, S, 2]
+    w = points[None, None] - xs[:, :, None]  # [N, S, M, 2]
+    r2 = jnp.sum(w * w, -1)
+    inv = w / jnp.where(r2 > 0, r2, 1.0)[..., None]
+    flam = jnp.max(jnp.abs(jnp.einsum("nsmc,kc->nskm", inv, u)), axis=1)  # [N, K, M]
 
-    def gmax(x):
+    def gmax(x):  # [N, M] -> [N, G]
         return jnp.max(jnp.where(member[None], x[:, :, None], 0.0), axis=1)
 
     def gmin(x):
         return jnp.min(jnp.where(member[None], x[:, :, None], jnp.inf), axis=1)
 
-    return jnp.stack([gmax(op), gmax(ratio), gmin(dist), gmin(h)], axis=-1)
+    def gmax_k(x):  # [N, K, M] -> [N, G, K]
+        return jnp.max(jnp.where(member[None, None], x[..., None], 0.0), axis=2).transpose(0, 2, 1)
+
+    table = jnp.concatenate(
+        [gmax(op)[..., None], gmin(dist)[..., None], gmax_k(rem), gmax_k(flam)], axis=-1
+    )
+    return table, _coarse_rows(table)
+
+
+def _coarse_rows(table):
+    """``[N, 1 + 2 K]`` per element e, from its ``[N, G, 2 + 2 K]`` screening table: (min
+    over the groups of the distance to e's chord; for each k the max over the groups and over
+    the elements e - 1, e, e + 1 of the remainder's directional value (a contact on e blends
+    two of those three); for each k the max over the groups of the Flamant support). The
+    numbers of the one-row bound ``psi_bound_coarse``."""
+    K = _SCREEN_DIRECTIONS
+    rem = jnp.max(table[:, :, 2 : 2 + K], axis=1)  # [N, K]
+    rem3 = jnp.maximum(rem, jnp.maximum(jnp.roll(rem, 1, axis=0), jnp.roll(rem, -1, axis=0)))
+    return jnp.concatenate(
+        [jnp.min(table[:, :, 1], axis=1)[:, None], rem3, jnp.max(table[:, :, 2 + K :], axis=1)],
+        axis=-1,
+    )
 
 
 def _build_one(verts, n_verts, radius, nu_kernel, q, *, n_elements, n_points, load_model):
@@ -1122,10 +1176,10 @@ def _build_one(verts, n_verts, radius, nu_kernel, q, *, n_elements, n_points, lo
     k_f = _force_operator(nodes, points, nu_kernel, load_model)
     k_f = jnp.where(valid & mask[None, None, :, None], k_f, 0.0)
     centre, angles = _node_angles(nodes)
-    table = _screen_tables(k_f, nodes, points, mask, centre, q, _SCREEN_GROUPS)
+    table, coarse = _screen_tables(k_f, nodes, points, mask, centre, q, _SCREEN_GROUPS)
     bins = _angle_bins(angles)
     out = nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles
-    return (*out, table, bins)
+    return (*out, table, coarse, bins)
 
 
 @jax.jit(static_argnames=("n_elements", "n_points", "load_model", "batch_size"))
@@ -1212,7 +1266,7 @@ def build_operators(
     if pad:
         out = [x[:P] for x in out]
     nodes, mid, normal, length, points, mask, ij, spacing, k_f, valid, centre, angles = out[:12]
-    table, bins = out[12:]
+    table, coarse, bins = out[12:]
     return BemOperators(
         nodes=nodes,
         midpoints=mid,
@@ -1227,6 +1281,7 @@ def build_operators(
         centres=centre,
         node_angles=angles,
         screen_table=table,
+        screen_coarse=coarse,
         angle_bins=bins,
         poisson_ratio=jnp.asarray(nu, verts.dtype),
         plane=plane,
@@ -1363,6 +1418,26 @@ def _equilibrate_flat(x, f, mask, particle, n_particles):
     return jnp.where((count >= 2)[particle][:, None], f2, f)
 
 
+def _direction_weights(f):
+    """``[K]`` weights w with sum_k w_k h_k a bound at the force ``f [2]`` of any function h
+    known at the K directions u_k of ``_half_turn_directions`` that is even, subadditive and
+    positively homogeneous in the force (a maximum of |u . v| over vectors v, or of norms of
+    linear maps of u): with f (or -f, turned into the upper half-plane) = alpha u_k +
+    beta u_(k+1), alpha, beta >= 0 (u_K = -u_0), w_k = alpha and w_(k+1) = beta. No
+    trigonometry: the sector and the coefficients come from cross products."""
+    K = _SCREEN_DIRECTIONS
+    flip = (f[1] < 0) | ((f[1] == 0) & (f[0] < 0))
+    g = jnp.where(flip, -f, f)
+    u = _half_turn_directions(f.dtype)
+    ue = jnp.concatenate([u, -u[:1]], axis=0)  # [K + 1, 2]
+    c = ue[:, 0] * g[1] - ue[:, 1] * g[0]  # cross(u_k, g): >= 0 iff g is at or past u_k
+    sector = (c[:-1] >= 0) & (c[1:] < 0)  # [K]: g lies in [u_k, u_(k+1))
+    inv = 1.0 / math.sin(math.pi / K)
+    alpha = jnp.where(sector, jnp.maximum(-c[1:], 0.0) * inv, 0.0)
+    beta = jnp.where(sector, jnp.maximum(c[:-1], 0.0) * inv, 0.0)
+    return alpha + jnp.roll(beta, 1)
+
+
 def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     """Per contact and point group, the bound of its psi (Pa x thickness), ``[G]``.
 
@@ -1370,64 +1445,49 @@ def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     (hat-blended operator block) . force plus, for ``flamant``, the Flamant field of the
     force, whose psi at a point p is (2 / pi) |F . e| / rho x psi(unit uniaxial stress), with
     rho e = p - x_c. The triangle inequality over contacts and the per-group numbers of
-    ``_screen_tables`` bound the whole field. For the Flamant part, with F = F_n n + F_t t on
-    the contact's element chord (n inward), eta = distance of x_c from the chord, d and h
-    the distances of p from the chord and from its line:
-    |n . e| / rho <= (h + eta) / (d - eta)^2 and |t . e| / rho <= min(1 / (d - eta),
-    1 / (2 (h - eta))). A contact with eta not below d and h (deep inside) gives +inf.
+    ``_screen_tables`` bound the whole field: the remainder by the directional values of
+    the two blended elements (or the operator norm, whichever is smaller), the Flamant part
+    by the directional support of a load at the chord samples x_s plus a Lipschitz margin:
+    the inversion w -> w / |w|^2 changes by at most |dx| / (d - |dx|)^2 when the load moves
+    by |dx| <= delta = (half the samples' spacing) + eta, with eta the contact's distance
+    from its element's chord and d the group's least distance to that chord. A contact with
+    delta not below d (deep inside, or far off the chord) gives +inf.
     ``f`` is the (equilibrated) force ``[2]``, ``e`` the contact's element (of N = ``n_el``);
-    ``table(r)`` and ``nodes(k)`` return the particle's ``[G, 4]`` table row of element r and
-    its node k (gathers from the arrays of all particles, so that only the rows used are
+    ``table(r)`` and ``nodes(k)`` return the particle's ``[G, 2 + 2 K]`` table row of element
+    r and its node k (gathers from the arrays of all particles, so that only the rows used are
     read); ``centre`` is the particle's.
     """
+    K = _SCREEN_DIRECTIONS
     _, lo, w = _contact_elements(cp[None], nodes, centre, None, e=e[None], n_elements=n_el)
     lo, w = lo[0], w[0]
     fm = _safe_norm(f)
-    op_lo, op_hi = table(lo)[:, 0], table((lo + 1) % n_el)[:, 0]
-    per = fm * ((1.0 - w) * op_lo + w * op_hi)  # [G]
+    wts = _direction_weights(f)  # [K]
+
+    row_lo, row_hi = table(lo), table((lo + 1) % n_el)  # e is one of the two
+
+    def remainder(row):
+        return row[:, 2 : 2 + K] @ wts
+
+    per = (1.0 - w) * remainder(row_lo) + w * remainder(row_hi)  # [G]
     if flamant:
         a = nodes(e)
         ab = nodes((e + 1) % n_el) - a
         le = jnp.maximum(_safe_norm(ab), 1e-300)
-        tang = ab / le
-        t = jnp.clip(jnp.sum((cp - a) * tang) / le, 0.0, 1.0)
+        t = jnp.clip(jnp.sum((cp - a) * ab) / (le * le), 0.0, 1.0)
         eta = _safe_norm(cp - a - t * ab)
-        f_n = jnp.abs(_cross2(tang, f))  # F . n with n = perp(t)
-        f_t = jnp.abs(jnp.sum(f * tang))
-        row = table(e)
-        ratio, d_min, h_min = row[:, 1], row[:, 2], row[:, 3]  # [G]
-        ok = (d_min > eta) & (h_min > eta)
-        dd = jnp.where(ok, d_min - eta, 1.0)
-        hh = jnp.where(ok, h_min - eta, 1.0)
-        grow = (1.0 + jnp.where(ok, eta / jnp.where(ok, h_min, 1.0), 0.0)) * (d_min / dd) ** 2
-        grow = jnp.where(jnp.isinf(d_min), 1.0, grow)
-        tangential = jnp.minimum(1.0 / dd, 0.5 / hh)
-        near = (2.0 / math.pi) * c_uniaxial * (f_n * ratio * grow + f_t * tangential)
+        row = jnp.where(e == lo, row_lo, row_hi)
+        d_min = row[:, 1]  # [G]
+        delta = 0.5 * le / _CHORD_SAMPLES + eta
+        ok = d_min > delta
+        gap = jnp.where(ok, d_min - delta, 1.0)
+        near = (2.0 / math.pi) * c_uniaxial * (row[:, 2 + K :] @ wts + fm * delta / (gap * gap))
         per = per + jnp.where(ok, near, jnp.inf)
     return jnp.where(fm > 0, per, 0.0)
 
 
-def psi_bound_flat(
-    ops: BemOperators,
-    particle: jax.Array,
-    contact_points: jax.Array,
-    contact_forces: jax.Array,
-    contact_mask: jax.Array,
-    *,
-    thickness: float | jax.Array = 1.0,
-) -> jax.Array:
-    """``psi_bound`` for a flat contact list ``[S]`` (cost grows with S, not with P x the
-    longest contact list): ``particle [S]`` (int) the slot each contact belongs to,
-    ``contact_points``, ``contact_forces`` ``[S, 2]`` in that particle's body frame,
-    ``contact_mask [S]``. Returns ``[P]`` (Pa)."""
-    P = ops.lengths.shape[0]
-    dtype = ops.screen_table.dtype
-    particle = jnp.asarray(particle, jnp.int32)
-    cp = contact_points.astype(dtype)
-    f = _equilibrate_flat(cp, contact_forces.astype(dtype), contact_mask, particle, P)
-    c_uni = equivalent_stress(jnp.array([1.0, 0.0, 0.0], dtype), ops.poisson_ratio, ops.plane)
-    flamant = ops.load_model == "flamant"
-    n_el = ops.node_angles.shape[1]
+def _flat_elements(ops, particle, cp, contact_mask):
+    """The element ``[S]`` holding each contact of a flat list (``_binned_element`` when every
+    particle's bins are exact, else the comparison with every node)."""
 
     def binned(_):
         return jax.vmap(
@@ -1444,7 +1504,110 @@ def psi_bound_flat(
         )(particle, cp)
 
     exact_bins = jnp.all(~contact_mask | (ops.angle_bins[particle, 0] >= 0))
-    element = lax.cond(exact_bins, binned, compared, None)
+    return lax.cond(exact_bins, binned, compared, None)
+
+
+def _flat_loads(ops, particle, contact_points, contact_forces, contact_mask):
+    """The bounds' common start: particle indices, contact points and equilibrated forces in
+    the tables' dtype, and psi of a unit uniaxial stress."""
+    dtype = ops.screen_table.dtype
+    particle = jnp.asarray(particle, jnp.int32)
+    cp = contact_points.astype(dtype)
+    n = ops.lengths.shape[0]
+    f = _equilibrate_flat(cp, contact_forces.astype(dtype), contact_mask, particle, n)
+    c_uni = equivalent_stress(jnp.array([1.0, 0.0, 0.0], dtype), ops.poisson_ratio, ops.plane)
+    return particle, cp, f, c_uni
+
+
+def _per_particle(ops, b, thickness):
+    """Sums per particle (Pa x thickness) -> bounds (Pa), with a relative margin of 1000
+    machine epsilons for rounding; 0 for invalid slots."""
+    dtype = b.dtype
+    thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), b.shape)
+    b = jnp.where(ops.valid, b / thickness, 0.0)
+    return b * (1.0 + 1000.0 * jnp.finfo(dtype).eps)
+
+
+def _coarse_term(row, a, b, cp, f, n_samples, c_uniaxial, flamant):
+    """One contact's share of ``psi_bound_coarse`` (Pa x thickness): ``row`` its element's
+    ``_coarse_rows`` row, ``a``, ``b`` the element's nodes, ``f`` the equilibrated force."""
+    K = _SCREEN_DIRECTIONS
+    fm = _safe_norm(f)
+    wts = _direction_weights(f)
+    per = jnp.sum(row[1 : 1 + K] * wts)
+    if flamant:
+        ab = b - a
+        le = jnp.maximum(_safe_norm(ab), 1e-300)
+        t = jnp.clip(jnp.sum((cp - a) * ab) / (le * le), 0.0, 1.0)
+        delta = 0.5 * le / n_samples + _safe_norm(cp - a - t * ab)
+        ok = row[0] > delta
+        gap = jnp.where(ok, row[0] - delta, 1.0)
+        near = (2.0 / math.pi) * c_uniaxial * (jnp.sum(row[1 + K :] * wts) + fm * delta / gap**2)
+        per = per + jnp.where(ok, near, jnp.inf)
+    return jnp.where(fm > 0, per, 0.0)
+
+
+def psi_bound_coarse(
+    ops: BemOperators,
+    particle: jax.Array,
+    contact_points: jax.Array,
+    contact_forces: jax.Array,
+    contact_mask: jax.Array,
+    *,
+    thickness: float | jax.Array = 1.0,
+) -> jax.Array:
+    """A cheaper, looser upper bound of the largest psi of every particle (Pa), ``[P]``.
+
+    The sum over contacts of each contact's bound over all the sample points (one row of
+    ``ops.screen_coarse`` per contact), where ``psi_bound_flat`` takes the largest over the
+    point groups of the sums. It is never below ``psi_bound_flat`` (so never below the
+    field); ``screen`` uses it to pick the particles that get the finer bound. Arguments as
+    in ``psi_bound_flat``.
+    """
+    loads = (contact_points, contact_forces, contact_mask)
+    particle, cp, f, c_uni = _flat_loads(ops, particle, *loads)
+    P, dtype = ops.lengths.shape[0], cp.dtype
+    n_el = ops.node_angles.shape[1]
+    if ops.screen_coarse.shape[1] != n_el:  # operators without the rows (bound_operators)
+        count = jax.ops.segment_sum(contact_mask.astype(jnp.int32), particle, num_segments=P)
+        return jnp.where(ops.valid & (count > 0), jnp.inf, 0.0).astype(dtype)
+    e = _flat_elements(ops, particle, cp, contact_mask)
+    terms = jax.vmap(
+        lambda i, r, x, g: _coarse_term(
+            ops.screen_coarse[i, r],
+            ops.nodes[i, r],
+            ops.nodes[i, (r + 1) % n_el],
+            x,
+            g,
+            _CHORD_SAMPLES,
+            c_uni,
+            ops.load_model == "flamant",
+        )  # fmt: skip
+    )(particle, e, cp, f)
+    b = jax.ops.segment_sum(jnp.where(contact_mask, terms, 0.0), particle, num_segments=P)
+    return _per_particle(ops, b, thickness)
+
+
+def psi_bound_flat(
+    ops: BemOperators,
+    particle: jax.Array,
+    contact_points: jax.Array,
+    contact_forces: jax.Array,
+    contact_mask: jax.Array,
+    *,
+    thickness: float | jax.Array = 1.0,
+) -> jax.Array:
+    """``psi_bound`` for a flat contact list ``[S]`` (cost grows with S, not with P x the
+    longest contact list): ``particle [S]`` (int) the slot each contact belongs to,
+    ``contact_points``, ``contact_forces`` ``[S, 2]`` in that particle's body frame,
+    ``contact_mask [S]``. Returns ``[P]`` (Pa)."""
+    loads = (contact_points, contact_forces, contact_mask)
+    particle, cp, f, c_uni = _flat_loads(ops, particle, *loads)
+    P = ops.lengths.shape[0]
+    flamant = ops.load_model == "flamant"
+    n_el = ops.node_angles.shape[1]
+
+    element = _flat_elements(ops, particle, cp, contact_mask)
     terms = jax.vmap(
         lambda i, x, g, e: _bound_terms(
             lambda r: ops.screen_table[i, r],
@@ -1460,9 +1623,7 @@ def psi_bound_flat(
     )(particle, cp, f, element)
     terms = jnp.where(contact_mask[:, None], terms, 0.0)
     b = jnp.max(jax.ops.segment_sum(terms, particle, num_segments=P), axis=1)
-    thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
-    b = jnp.where(ops.valid, b / thickness, 0.0)
-    return b * (1.0 + 1000.0 * jnp.finfo(dtype).eps)
+    return _per_particle(ops, b, thickness)
 
 
 def psi_bound(
@@ -1517,7 +1678,7 @@ def bound_operators(
 ) -> BemOperators:
     """Operators that carry only what ``psi_bound`` reads (``BOUND_FIELDS``).
 
-    The screening tables of P particles take ``P x N x (4 G + 7)`` numbers, against
+    The screening tables of P particles take ``P x N x ((2 + 2 K) G + 7)`` numbers, against
     ``P x N x 6 M`` for the whole operator, so every particle of a large packing can keep
     its tables while the full operators are built (and cached) only for the particles that
     pass the bound. The other fields hold size-1 placeholders: such operators must not be
@@ -1525,7 +1686,7 @@ def bound_operators(
 
     Args:
         nodes ``[P, N, 2]``, centres ``[P, 2]``, node_angles ``[P, N]``, angle_bins
-        ``[P, 4 N]``, screen_table ``[P, N, G, 4]``, valid ``[P]``: the same fields of
+        ``[P, 4 N]``, screen_table ``[P, N, G, 2 + 2 K]``, valid ``[P]``: the same fields of
         operators from ``build_operators`` (stacked rows of several builds are fine).
         poisson_ratio, plane, load_model: those of the builds.
     """
@@ -1548,6 +1709,8 @@ def bound_operators(
         centres=jnp.asarray(centres, dt),
         node_angles=jnp.asarray(node_angles, dt),
         screen_table=jnp.asarray(screen_table, dt),
+        # not carried: psi_bound_coarse is then +inf for every loaded particle (still exact)
+        screen_coarse=jnp.zeros((P, 1, 1 + 2 * _SCREEN_DIRECTIONS), dt),
         angle_bins=jnp.asarray(angle_bins),
         poisson_ratio=jnp.asarray(poisson_ratio, dt),
         plane=plane,
@@ -1571,7 +1734,10 @@ class Screening(NamedTuple):
         n_candidates: number of particles with bound >= threshold (scalar int).
         max_contacts: most real contacts of a particle in ``candidates`` (scalar int).
         complete: ``n_candidates <= K`` (every particle not in ``candidates`` has psi below
-            the threshold at every sample point) and every candidate's contacts were used.
+            the threshold at every sample point) and every candidate's contacts were used
+            (and, with the coarse level, every particle it passed got the fine bound).
+        n_coarse: number of particles whose coarse bound (``psi_bound_coarse``) reaches the
+            threshold (P without the coarse level).
     """
 
     bound: jax.Array
@@ -1583,6 +1749,7 @@ class Screening(NamedTuple):
     n_candidates: jax.Array
     max_contacts: jax.Array
     complete: jax.Array
+    n_coarse: jax.Array
 
 
 def _flat_contacts(contact_points, contact_forces, contact_mask):
@@ -1601,33 +1768,65 @@ def _flat_contacts(contact_points, contact_forces, contact_mask):
     )
 
 
+def _compact(contact_points, contact_forces, contact_mask, c_keep):
+    """Real contacts of padded lists ``[K, C]`` moved to the first ``c_keep`` slots: (points,
+    forces, mask, every list fits, real contacts per list)."""
+    n_real = jnp.sum(contact_mask, axis=1)
+    if c_keep is None or c_keep >= contact_mask.shape[1]:
+        return contact_points, contact_forces, contact_mask, jnp.asarray(True), n_real
+    order = jnp.argsort(~contact_mask, axis=1, stable=True)[:, :c_keep]
+    return (
+        jnp.take_along_axis(contact_points, order[..., None], axis=1),
+        jnp.take_along_axis(contact_forces, order[..., None], axis=1),
+        jnp.take_along_axis(contact_mask, order, axis=1),
+        jnp.all(n_real <= c_keep),
+        n_real,
+    )
+
+
 def _screen_core(
     ops, contact_points, contact_forces, contact_mask, threshold, thickness, k, flat=None,
-    c_keep=None,
+    c_keep=None, k_coarse=None,
 ):  # fmt: skip
-    """The two levels of ``screen`` for K = ``k`` candidate slots (jit-able); ``flat``: the
+    """The levels of ``screen`` for K = ``k`` candidate slots (jit-able); ``flat``: the
     same contacts as ``_flat_contacts`` (the bound then costs per real contact); ``c_keep``:
     the candidates' field is taken over their real contacts moved to the first ``c_keep``
-    slots (fewer padded slots to process; ``complete`` is False if one has more)."""
+    slots (fewer padded slots to process; ``complete`` is False if one has more);
+    ``k_coarse`` (with ``flat``): the coarse bound first, then the fine bound only for the
+    ``k_coarse`` particles with the largest coarse bound (``complete`` is False if more
+    than that many reach the threshold)."""
     P = ops.lengths.shape[0]
     dtype = ops.screen_table.dtype
     thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
     threshold = jnp.broadcast_to(jnp.asarray(threshold, dtype), (P,))
+    coarse_done = jnp.asarray(True)
+    n_coarse = jnp.asarray(P, jnp.int32)
+    most = jnp.asarray(0, jnp.int32)
     if flat is None:
         bound = psi_bound(ops, contact_points, contact_forces, contact_mask, thickness=thickness)
-    else:
+    elif k_coarse is None:
         bound = psi_bound_flat(ops, *flat, thickness=thickness)
+    else:
+        coarse = psi_bound_coarse(ops, *flat, thickness=thickness)
+        ratio1 = coarse / threshold
+        _, idx1 = lax.top_k(ratio1, k_coarse)
+        cp1, cf1, cm1, fits1, real1 = _compact(
+            contact_points[idx1], contact_forces[idx1], contact_mask[idx1], c_keep
+        )
+        c1 = cm1.shape[1]
+        fine = psi_bound_flat(
+            ops, jnp.repeat(idx1, c1), cp1.reshape(-1, 2), cf1.reshape(-1, 2), cm1.reshape(-1),
+            thickness=thickness,
+        )  # fmt: skip
+        bound = coarse.at[idx1].set(jnp.minimum(coarse[idx1], fine[idx1]))
+        n_coarse = jnp.sum(ratio1 >= 1.0).astype(jnp.int32)
+        coarse_done = (n_coarse <= k_coarse) & fits1
+        most = jnp.max(real1).astype(jnp.int32)
     ratio = bound / threshold
     top, idx = lax.top_k(ratio, k)
-    cp_k, cf_k, cm_k = contact_points[idx], contact_forces[idx], contact_mask[idx]
-    n_real = jnp.sum(cm_k, axis=1)
-    fits = jnp.asarray(True)
-    if c_keep is not None and c_keep < cm_k.shape[1]:
-        order = jnp.argsort(~cm_k, axis=1, stable=True)[:, :c_keep]
-        cp_k = jnp.take_along_axis(cp_k, order[..., None], axis=1)
-        cf_k = jnp.take_along_axis(cf_k, order[..., None], axis=1)
-        cm_k = jnp.take_along_axis(cm_k, order, axis=1)
-        fits = jnp.all(n_real <= c_keep)
+    cp_k, cf_k, cm_k, fits, n_real = _compact(
+        contact_points[idx], contact_forces[idx], contact_mask[idx], c_keep
+    )
     keep = ops.point_mask[idx] & ops.valid[idx][:, None]
     n_cand = jnp.sum(ratio >= 1.0)
 
@@ -1664,8 +1863,9 @@ def _screen_core(
         psi=psi,
         reaches=is_cand & (jnp.max(psi, axis=1) >= threshold[idx]),
         n_candidates=n_cand,
-        max_contacts=jnp.max(n_real),
-        complete=(n_cand <= k) & fits,
+        max_contacts=jnp.maximum(jnp.max(n_real), most),
+        complete=(n_cand <= k) & fits & coarse_done,
+        n_coarse=n_coarse,
     )
 
 
@@ -1681,23 +1881,28 @@ def screen(
     *,
     thickness: float | ArrayLike = 1.0,
     max_candidates: int = 64,
+    max_coarse: int | None = 128,
 ) -> Screening:
     """Which particles can reach psi >= ``threshold``, with their exact field (host call).
 
-    Two levels: ``psi_bound_flat`` for every particle (a few numbers read per real contact),
-    then ``psi_batched``'s field only for the particles whose bound reaches the threshold. The
-    answer is the same as thresholding ``psi_batched`` of all particles: particles left out
-    are proven below the threshold. If more than ``max_candidates`` particles pass the bound,
-    the call is repeated with K = the next power of two at or above their count (the K used
-    is ``Screening.candidates.shape[0]``; each K compiles once), so nothing is cut. The
-    candidates' field runs over their real contacts only (padded to a power of two, at least
-    8 slots or the list's length).
+    Three levels, each run only where the one before cannot rule a particle out: the coarse
+    bound ``psi_bound_coarse`` for every particle (one table row read per real contact), the
+    finer ``psi_bound_flat`` for the ``max_coarse`` particles with the largest coarse bound,
+    then ``psi_batched``'s field only for the particles whose bound reaches the threshold.
+    The answer is the same as thresholding ``psi_batched`` of all particles: particles left
+    out are proven below the threshold. If more particles than the slots of a level pass the
+    level before, the call is repeated with the next power of two at or above their count
+    (the K used is ``Screening.candidates.shape[0]``; each size compiles once), so nothing
+    is cut. The candidates' bound and field run over their real contacts only (padded to a
+    power of two, at least 8 slots or the list's length).
 
     Args:
         ops, contact_points, contact_forces, contact_mask, thickness: as in ``psi_batched``.
         threshold: psi threshold (Pa), scalar or ``[P]``, > 0.
         max_candidates: K, candidate slots of the first attempt (static: one compilation
             per K).
+        max_coarse: particles given the fine bound in the first attempt; None (or at least
+            P) skips the coarse level and bounds every particle finely.
 
     Returns:
         ``Screening``.
@@ -1719,10 +1924,17 @@ def screen(
     flat = tuple(jnp.asarray(x) for x in _flat_contacts(*args[1:4]))
     c_max = args[3].shape[1]
     c_keep = min(c_max, 8)
+
+    def coarse_slots(n):
+        return None if n is None or n >= P else max(1, int(n))
+
+    k1 = coarse_slots(max_coarse)
     while True:
-        res = _screen_jit(*args, k, flat, c_keep)
+        res = _screen_jit(*args, k, flat, c_keep, k1)
         if bool(res.complete):
             return res
-        if int(res.n_candidates) > k:
+        if k1 is not None and int(res.n_coarse) > k1:
+            k1 = coarse_slots(1 << (int(res.n_coarse) - 1).bit_length())
+        elif int(res.n_candidates) > k:
             k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())
         c_keep = max(c_keep, min(c_max, 1 << (int(res.max_contacts) - 1).bit_length()))
