@@ -404,7 +404,7 @@ class DsmBreakage:
         n_points: BEM sample points per particle (capacity M).
         screen: ``"bound"`` (default): a particle is checked when the proven upper bound of
             its psi (:func:`jaxgran.bem.psi_bound`) reaches eps, so none that would break is
-            missed; the bound's tables (a few kB per shape) are kept for every particle.
+            missed; the bound's tables (about 40 kB per shape, float64) are kept for every particle.
             ``"force"``: when its largest contact force exceeds ``screen_fraction`` of its
             critical load (a heuristic: loads near an edge or a corner break below it; in
             the default Cantor oedometer 5 of 15 breakages came below half of it).
