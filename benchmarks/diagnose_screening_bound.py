@@ -11,7 +11,8 @@ contacts, four upper bounds of its largest psi are compared, each at least the o
 3. ``grouped``: each contact's two parts maximised over each angular group of sample points
    (``bem._SCREEN_GROUPS``) before the sum over contacts, the maximum over the groups;
 4. ``bound``: ``bem.psi_bound``, which replaces the exact group maxima of (3) by the numbers
-   of its per-element tables (operator norms; the geometric bound of the Flamant field).
+   of its per-element tables (maxima over the element's load positions, interpolation
+   between force directions, the Lipschitz margin of the Flamant field).
 
 The ratios of consecutive bounds (median, 90th percentile) say what each step costs.
 

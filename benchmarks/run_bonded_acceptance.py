@@ -231,6 +231,13 @@ CANTILEVER_CASES["matched_slender15"] = {
     "n_cells": 733,
 }
 
+# and at L / s = 20 (978 cells): the root rotation's share falls further, as s / L
+CANTILEVER_CASES["matched_slender20"] = {
+    **CANTILEVER_CASES["matched_slender"],
+    "length": 1.0,
+    "n_cells": 978,
+}
+
 
 def cantilever(args) -> dict:
     """Each case: E_c, nu and E_t measured on a block of the beam's material and cell size,
