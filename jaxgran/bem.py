@@ -1738,6 +1738,8 @@ class Screening(NamedTuple):
             (and, with the coarse level, every particle it passed got the fine bound).
         n_coarse: number of particles whose coarse bound (``psi_bound_coarse``) reaches the
             threshold (P without the coarse level).
+        n_fine_contacts: real contacts of the particles given the fine bound (0 without the
+            coarse level).
     """
 
     bound: jax.Array
@@ -1750,6 +1752,7 @@ class Screening(NamedTuple):
     max_contacts: jax.Array
     complete: jax.Array
     n_coarse: jax.Array
+    n_fine_contacts: jax.Array
 
 
 def _flat_contacts(contact_points, contact_forces, contact_mask):
@@ -1784,24 +1787,45 @@ def _compact(contact_points, contact_forces, contact_mask, c_keep):
     )
 
 
+def _select_contacts(flat, chosen, size):
+    """The contacts of a flat list (``_flat_contacts``) whose particle is ``chosen [P]``,
+    moved in order to the front of lists of ``size`` slots: (particle, points, forces, mask,
+    how many there are; the lists hold them all if that is <= ``size``)."""
+    particle, cp, cf, mask = flat
+    take = mask & chosen[particle]
+    dest = jnp.where(take, jnp.cumsum(take) - 1, size)  # size: dropped
+
+    def put(buf, val):
+        return buf.at[dest].set(val, mode="drop")
+
+    return (
+        put(jnp.zeros(size, particle.dtype), particle),
+        put(jnp.zeros((size, 2), cp.dtype), cp),
+        put(jnp.zeros((size, 2), cf.dtype), cf),
+        put(jnp.zeros(size, bool), take),
+        jnp.sum(take).astype(jnp.int32),
+    )
+
+
 def _screen_core(
     ops, contact_points, contact_forces, contact_mask, threshold, thickness, k, flat=None,
-    c_keep=None, k_coarse=None,
+    c_keep=None, k_coarse=None, s_fine=None,
 ):  # fmt: skip
     """The levels of ``screen`` for K = ``k`` candidate slots (jit-able); ``flat``: the
     same contacts as ``_flat_contacts`` (the bound then costs per real contact); ``c_keep``:
     the candidates' field is taken over their real contacts moved to the first ``c_keep``
     slots (fewer padded slots to process; ``complete`` is False if one has more);
     ``k_coarse`` (with ``flat``): the coarse bound first, then the fine bound only for the
-    ``k_coarse`` particles with the largest coarse bound (``complete`` is False if more
-    than that many reach the threshold)."""
+    ``k_coarse`` particles with the largest coarse bound, over their real contacts moved
+    into ``s_fine`` slots (default 8 per particle; ``complete`` is False if more than
+    ``k_coarse`` particles reach the threshold or their contacts overflow the slots)."""
     P = ops.lengths.shape[0]
     dtype = ops.screen_table.dtype
     thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
     threshold = jnp.broadcast_to(jnp.asarray(threshold, dtype), (P,))
     coarse_done = jnp.asarray(True)
     n_coarse = jnp.asarray(P, jnp.int32)
-    most = jnp.asarray(0, jnp.int32)
+    n_fine = jnp.asarray(0, jnp.int32)
     if flat is None:
         bound = psi_bound(ops, contact_points, contact_forces, contact_mask, thickness=thickness)
     elif k_coarse is None:
@@ -1810,18 +1834,13 @@ def _screen_core(
         coarse = psi_bound_coarse(ops, *flat, thickness=thickness)
         ratio1 = coarse / threshold
         _, idx1 = lax.top_k(ratio1, k_coarse)
-        cp1, cf1, cm1, fits1, real1 = _compact(
-            contact_points[idx1], contact_forces[idx1], contact_mask[idx1], c_keep
-        )
-        c1 = cm1.shape[1]
-        fine = psi_bound_flat(
-            ops, jnp.repeat(idx1, c1), cp1.reshape(-1, 2), cf1.reshape(-1, 2), cm1.reshape(-1),
-            thickness=thickness,
-        )  # fmt: skip
+        size = 8 * k_coarse if s_fine is None else s_fine
+        chosen = jnp.zeros(P, bool).at[idx1].set(True)
+        *sel, n_fine = _select_contacts(flat, chosen, size)
+        fine = psi_bound_flat(ops, *sel, thickness=thickness)
         bound = coarse.at[idx1].set(jnp.minimum(coarse[idx1], fine[idx1]))
         n_coarse = jnp.sum(ratio1 >= 1.0).astype(jnp.int32)
-        coarse_done = (n_coarse <= k_coarse) & fits1
-        most = jnp.max(real1).astype(jnp.int32)
+        coarse_done = (n_coarse <= k_coarse) & (n_fine <= size)
     ratio = bound / threshold
     top, idx = lax.top_k(ratio, k)
     cp_k, cf_k, cm_k, fits, n_real = _compact(
@@ -1863,9 +1882,10 @@ def _screen_core(
         psi=psi,
         reaches=is_cand & (jnp.max(psi, axis=1) >= threshold[idx]),
         n_candidates=n_cand,
-        max_contacts=jnp.maximum(jnp.max(n_real), most),
+        max_contacts=jnp.max(n_real),
         complete=(n_cand <= k) & fits & coarse_done,
         n_coarse=n_coarse,
+        n_fine_contacts=n_fine,
     )
 
 
@@ -1929,12 +1949,16 @@ def screen(
         return None if n is None or n >= P else max(1, int(n))
 
     k1 = coarse_slots(max_coarse)
+    s1 = None if k1 is None else 8 * k1
     while True:
-        res = _screen_jit(*args, k, flat, c_keep, k1)
+        res = _screen_jit(*args, k, flat, c_keep, k1, s1)
         if bool(res.complete):
             return res
         if k1 is not None and int(res.n_coarse) > k1:
             k1 = coarse_slots(1 << (int(res.n_coarse) - 1).bit_length())
+            s1 = None if k1 is None else max(s1, 8 * k1)
+        elif k1 is not None and int(res.n_fine_contacts) > s1:
+            s1 = 1 << (int(res.n_fine_contacts) - 1).bit_length()
         elif int(res.n_candidates) > k:
             k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())
         c_keep = max(c_keep, min(c_max, 1 << (int(res.max_contacts) - 1).bit_length()))

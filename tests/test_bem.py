@@ -742,6 +742,34 @@ def test_coarse_bound_is_never_below_the_fine_bound(batch):
     assert np.all(np.isinf(got[loaded])) and np.all(got[~loaded] == 0.0)
 
 
+def test_coarse_level_gives_the_fine_bound_of_the_particles_it_passes(batch):
+    """The coarse level moves the contacts of the particles it passes into its own slots:
+    their bound equals the fine bound, the others keep the coarse one, and too few slots
+    are reported (``complete`` False), not cut silently."""
+    *_, ops, _, _, _ = batch
+    cp, cf, mask = random_loads(ops, 6, 21)
+    P = ops.lengths.shape[0]
+    flat = tuple(jnp.asarray(x) for x in bem._flat_contacts(cp, cf, mask))
+    fine = np.asarray(bem.psi_bound_flat(ops, *flat))
+    coarse = np.asarray(bem.psi_bound_coarse(ops, *flat))
+    thr = 0.5 * np.max(fine[:-1])
+    k1 = 2
+    res = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, P, flat, 8, k1, 8 * k1)
+    top = np.argsort(-coarse, kind="stable")[:k1]
+    want = coarse.copy()
+    want[top] = np.minimum(coarse[top], fine[top])
+    np.testing.assert_allclose(np.asarray(res.bound), want, rtol=1e-12)
+    assert int(res.n_fine_contacts) == int(mask[top].sum())
+    assert bool(res.complete) == (int(res.n_coarse) <= k1)
+    short = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, P, flat, 8, k1, 1)
+    assert not bool(short.complete)
+    full = bem.screen(ops, cp, cf, mask, thr, max_candidates=1, max_coarse=1)
+    assert bool(full.complete)
+    assert set(np.asarray(full.candidates)[np.asarray(full.is_candidate)].tolist()) == set(
+        np.flatnonzero(fine >= thr).tolist()
+    )
+
+
 def test_screen_rejects_bad_threshold(batch):
     *_, ops, cp, cf, mask = batch
     for thr in (0.0, -1.0, np.nan):
