@@ -93,7 +93,7 @@ _SCREEN_GROUPS = 8
 # within 1 / cos(pi / (2 K)) of its own direction's value (8 % at K = 4).
 _SCREEN_DIRECTIONS = 4
 # Positions along each element's chord at which the Flamant table places the load; a contact
-# between them (or off the chord) is covered by the Lipschitz margin of ``_bound_terms``.
+# between them (or off the chord) is covered by the Lipschitz margin of ``_flamant_near``.
 _CHORD_SAMPLES = 8
 
 
@@ -1040,7 +1040,7 @@ class BemOperators(eqx.Module):
         centres: mean of the nodes ``[P, 2]`` (m), inside each outline.
         node_angles: polar angles of the nodes about ``centres`` ``[P, N]`` (rad), increasing
             from node 0; a contact's element is found from its angle (C x N comparisons).
-        screen_table: ``[P, N, G, 2 + 2 K]``: per element and group of sample points (G
+        screen_table: ``[P, N, G, 1 + 2 K]``: per element and group of sample points (G
             angular sectors) the numbers of the screening bound ``psi_bound``
             (``_screen_tables``; K = ``_SCREEN_DIRECTIONS``).
         screen_coarse: ``[P, N, 1 + 2 K]``: one row per element for the first, cheaper level
@@ -1093,12 +1093,11 @@ def _screen_tables(k_f, nodes, points, mask, centre, q, n_groups: int):
 
     Groups are angular sectors of the sample points about ``centre``. With u_k the K unit
     vectors of ``_half_turn_directions`` and x_s the ``_CHORD_SAMPLES`` midpoints of equal
-    parts of the element's chord, returns ``[N, G, 2 + 2 K]``: (max over the group of the
-    operator norm, in the psi norm, of the 3 x 2 block ``k_f[e, :, p, :]`` (1/m); min over
-    the group of the distance d of p to the chord (m); for each k the max over the group of
+    parts of the element's chord, returns ``[N, G, 1 + 2 K]``: (min over the group of the
+    distance d of p to the chord (m); for each k the max over the group of
     psi(``k_f[e, :, p, :]`` u_k) (1/m); for each k the max over the group and the x_s of
     |u_k . (p - x_s)| / |p - x_s|^2 (1/m), the direction factor of the Flamant field of a
-    load at x_s). An empty group gives (0, +inf, 0..., 0...).
+    load at x_s). An empty group gives (+inf, 0..., 0...).
 
     Both directional columns are values at u_k of functions that are norms of the force
     direction (a maximum of norms of linear maps), so ``_direction_weights`` may interpolate
@@ -1107,9 +1106,6 @@ def _screen_tables(k_f, nodes, points, mask, centre, q, n_groups: int):
     dtype = k_f.dtype
     u = _half_turn_directions(dtype)  # [K, 2]
     gram = jnp.einsum("ekmi,ij,elmj->emkl", k_f, q, k_f)  # [N, M, 2, 2]
-    a, b, c = gram[..., 0, 0], gram[..., 0, 1], gram[..., 1, 1]
-    lam = 0.5 * (a + c) + jnp.sqrt(0.25 * (a - c) ** 2 + b * b)
-    op = jnp.sqrt(jnp.maximum(lam, 0.0))  # [N, M]
     # psi of the remainder per unit force along u_k: sqrt(u^T gram u)
     quad = jnp.einsum("kx,emxy,ky->ekm", u, gram, u)
     rem = jnp.sqrt(jnp.maximum(quad, 0.0))  # [N, K, M]
@@ -1130,32 +1126,27 @@ def _screen_tables(k_f, nodes, points, mask, centre, q, n_groups: int):
     inv = w / jnp.where(r2 > 0, r2, 1.0)[..., None]
     flam = jnp.max(jnp.abs(jnp.einsum("nsmc,kc->nskm", inv, u)), axis=1)  # [N, K, M]
 
-    def gmax(x):  # [N, M] -> [N, G]
-        return jnp.max(jnp.where(member[None], x[:, :, None], 0.0), axis=1)
-
-    def gmin(x):
+    def gmin(x):  # [N, M] -> [N, G]
         return jnp.min(jnp.where(member[None], x[:, :, None], jnp.inf), axis=1)
 
     def gmax_k(x):  # [N, K, M] -> [N, G, K]
         return jnp.max(jnp.where(member[None, None], x[..., None], 0.0), axis=2).transpose(0, 2, 1)
 
-    table = jnp.concatenate(
-        [gmax(op)[..., None], gmin(dist)[..., None], gmax_k(rem), gmax_k(flam)], axis=-1
-    )
+    table = jnp.concatenate([gmin(dist)[..., None], gmax_k(rem), gmax_k(flam)], axis=-1)
     return table, _coarse_rows(table)
 
 
 def _coarse_rows(table):
-    """``[N, 1 + 2 K]`` per element e, from its ``[N, G, 2 + 2 K]`` screening table: (min
-    over the groups of the distance to e's chord; for each k the max over the groups and over
-    the elements e - 1, e, e + 1 of the remainder's directional value (a contact on e blends
-    two of those three); for each k the max over the groups of the Flamant support). The
-    numbers of the one-row bound ``psi_bound_coarse``."""
+    """``[N, 1 + 2 K]`` per element e, from its ``[N, G, 1 + 2 K]`` screening table, in the
+    same column order: (min over the groups of the distance to e's chord; for each k the max
+    over the groups and over the elements e - 1, e, e + 1 of the remainder's directional
+    value (a contact on e blends two of those three); for each k the max over the groups of
+    the Flamant support). The numbers of the one-row bound ``psi_bound_coarse``."""
     K = _SCREEN_DIRECTIONS
-    rem = jnp.max(table[:, :, 2 : 2 + K], axis=1)  # [N, K]
+    rem = jnp.max(table[:, :, 1 : 1 + K], axis=1)  # [N, K]
     rem3 = jnp.maximum(rem, jnp.maximum(jnp.roll(rem, 1, axis=0), jnp.roll(rem, -1, axis=0)))
     return jnp.concatenate(
-        [jnp.min(table[:, :, 1], axis=1)[:, None], rem3, jnp.max(table[:, :, 2 + K :], axis=1)],
+        [jnp.min(table[:, :, 0], axis=1)[:, None], rem3, jnp.max(table[:, :, 1 + K :], axis=1)],
         axis=-1,
     )
 
@@ -1438,6 +1429,24 @@ def _direction_weights(f):
     return alpha + jnp.roll(beta, 1)
 
 
+def _flamant_near(a, b, cp, f, wts, d_min, support, c_uniaxial):
+    """Bound of psi of a contact's Flamant field (Pa x thickness) over the points whose least
+    distance to the chord ``a``-``b`` of its element is ``d_min`` (``[G]`` or scalar):
+    (2 / pi) psi(unit uniaxial) (``support`` (``[G, K]`` or ``[K]``) interpolated at the force
+    by ``wts`` + |F| delta / (d_min - delta)^2). The margin: the inversion w -> w / |w|^2
+    changes by at most |dx| / (d - |dx|)^2 when the load moves by |dx| <= delta = (half the
+    chord samples' spacing) + eta, with eta the contact's distance from the chord. +inf where
+    delta is not below d_min (a contact deep inside, or far off the chord)."""
+    ab = b - a
+    le = jnp.maximum(_safe_norm(ab), 1e-300)
+    t = jnp.clip(jnp.sum((cp - a) * ab) / (le * le), 0.0, 1.0)
+    delta = 0.5 * le / _CHORD_SAMPLES + _safe_norm(cp - a - t * ab)
+    ok = d_min > delta
+    gap = jnp.where(ok, d_min - delta, 1.0)
+    near = (2.0 / math.pi) * c_uniaxial * (support @ wts + _safe_norm(f) * delta / (gap * gap))
+    return jnp.where(ok, near, jnp.inf)
+
+
 def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     """Per contact and point group, the bound of its psi (Pa x thickness), ``[G]``.
 
@@ -1446,14 +1455,10 @@ def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     force, whose psi at a point p is (2 / pi) |F . e| / rho x psi(unit uniaxial stress), with
     rho e = p - x_c. The triangle inequality over contacts and the per-group numbers of
     ``_screen_tables`` bound the whole field: the remainder by the directional values of
-    the two blended elements (or the operator norm, whichever is smaller), the Flamant part
-    by the directional support of a load at the chord samples x_s plus a Lipschitz margin:
-    the inversion w -> w / |w|^2 changes by at most |dx| / (d - |dx|)^2 when the load moves
-    by |dx| <= delta = (half the samples' spacing) + eta, with eta the contact's distance
-    from its element's chord and d the group's least distance to that chord. A contact with
-    delta not below d (deep inside, or far off the chord) gives +inf.
+    the two blended elements, the Flamant part by the directional support of a load at the
+    chord samples plus a Lipschitz margin (``_flamant_near``).
     ``f`` is the (equilibrated) force ``[2]``, ``e`` the contact's element (of N = ``n_el``);
-    ``table(r)`` and ``nodes(k)`` return the particle's ``[G, 2 + 2 K]`` table row of element
+    ``table(r)`` and ``nodes(k)`` return the particle's ``[G, 1 + 2 K]`` table row of element
     r and its node k (gathers from the arrays of all particles, so that only the rows used are
     read); ``centre`` is the particle's.
     """
@@ -1466,22 +1471,13 @@ def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     row_lo, row_hi = table(lo), table((lo + 1) % n_el)  # e is one of the two
 
     def remainder(row):
-        return row[:, 2 : 2 + K] @ wts
+        return row[:, 1 : 1 + K] @ wts
 
     per = (1.0 - w) * remainder(row_lo) + w * remainder(row_hi)  # [G]
     if flamant:
-        a = nodes(e)
-        ab = nodes((e + 1) % n_el) - a
-        le = jnp.maximum(_safe_norm(ab), 1e-300)
-        t = jnp.clip(jnp.sum((cp - a) * ab) / (le * le), 0.0, 1.0)
-        eta = _safe_norm(cp - a - t * ab)
         row = jnp.where(e == lo, row_lo, row_hi)
-        d_min = row[:, 1]  # [G]
-        delta = 0.5 * le / _CHORD_SAMPLES + eta
-        ok = d_min > delta
-        gap = jnp.where(ok, d_min - delta, 1.0)
-        near = (2.0 / math.pi) * c_uniaxial * (row[:, 2 + K :] @ wts + fm * delta / (gap * gap))
-        per = per + jnp.where(ok, near, jnp.inf)
+        a, b = nodes(e), nodes((e + 1) % n_el)
+        per = per + _flamant_near(a, b, cp, f, wts, row[:, 0], row[:, 1 + K :], c_uniaxial)
     return jnp.where(fm > 0, per, 0.0)
 
 
@@ -1528,23 +1524,15 @@ def _per_particle(ops, b, thickness):
     return b * (1.0 + 1000.0 * jnp.finfo(dtype).eps)
 
 
-def _coarse_term(row, a, b, cp, f, n_samples, c_uniaxial, flamant):
+def _coarse_term(row, a, b, cp, f, c_uniaxial, flamant):
     """One contact's share of ``psi_bound_coarse`` (Pa x thickness): ``row`` its element's
     ``_coarse_rows`` row, ``a``, ``b`` the element's nodes, ``f`` the equilibrated force."""
     K = _SCREEN_DIRECTIONS
-    fm = _safe_norm(f)
     wts = _direction_weights(f)
-    per = jnp.sum(row[1 : 1 + K] * wts)
+    per = row[1 : 1 + K] @ wts
     if flamant:
-        ab = b - a
-        le = jnp.maximum(_safe_norm(ab), 1e-300)
-        t = jnp.clip(jnp.sum((cp - a) * ab) / (le * le), 0.0, 1.0)
-        delta = 0.5 * le / n_samples + _safe_norm(cp - a - t * ab)
-        ok = row[0] > delta
-        gap = jnp.where(ok, row[0] - delta, 1.0)
-        near = (2.0 / math.pi) * c_uniaxial * (jnp.sum(row[1 + K :] * wts) + fm * delta / gap**2)
-        per = per + jnp.where(ok, near, jnp.inf)
-    return jnp.where(fm > 0, per, 0.0)
+        per = per + _flamant_near(a, b, cp, f, wts, row[0], row[1 + K :], c_uniaxial)
+    return jnp.where(_safe_norm(f) > 0, per, 0.0)
 
 
 def psi_bound_coarse(
@@ -1579,7 +1567,6 @@ def psi_bound_coarse(
             ops.nodes[i, (r + 1) % n_el],
             x,
             g,
-            _CHORD_SAMPLES,
             c_uni,
             ops.load_model == "flamant",
         )  # fmt: skip
@@ -1678,7 +1665,7 @@ def bound_operators(
 ) -> BemOperators:
     """Operators that carry only what ``psi_bound`` reads (``BOUND_FIELDS``).
 
-    The screening tables of P particles take ``P x N x ((2 + 2 K) G + 7)`` numbers, against
+    The screening tables of P particles take ``P x N x ((1 + 2 K) G + 7)`` numbers, against
     ``P x N x 6 M`` for the whole operator, so every particle of a large packing can keep
     its tables while the full operators are built (and cached) only for the particles that
     pass the bound. The other fields hold size-1 placeholders: such operators must not be
@@ -1686,7 +1673,7 @@ def bound_operators(
 
     Args:
         nodes ``[P, N, 2]``, centres ``[P, 2]``, node_angles ``[P, N]``, angle_bins
-        ``[P, 4 N]``, screen_table ``[P, N, G, 2 + 2 K]``, valid ``[P]``: the same fields of
+        ``[P, 4 N]``, screen_table ``[P, N, G, 1 + 2 K]``, valid ``[P]``: the same fields of
         operators from ``build_operators`` (stacked rows of several builds are fine).
         poisson_ratio, plane, load_model: those of the builds.
     """
