@@ -97,9 +97,23 @@ _SCREEN_DIRECTIONS = 4
 _CHORD_SAMPLES = 8
 
 
+def _dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """Sum of ``a * b`` over the last axis, written out term by term for short axes: XLA
+    then fuses it with the element-wise work around it (a reduction over an axis of 2-9
+    starts a kernel of its own on CPU, and the bounds' per-contact code was mostly such
+    kernels)."""
+    n = jnp.shape(a)[-1] if jnp.ndim(a) else 1
+    if jnp.ndim(a) == 0 or n > 16:
+        return jnp.sum(a * b, axis=-1)
+    out = a[..., 0] * b[..., 0]
+    for k in range(1, n):
+        out = out + a[..., k] * b[..., k]
+    return out
+
+
 def _safe_norm(v: jnp.ndarray) -> jnp.ndarray:
     """|v| over the last axis with a finite gradient at v = 0 (double where)."""
-    s = jnp.sum(v * v, axis=-1)
+    s = _dot(v, v)
     pos = s > 0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
 
@@ -653,9 +667,9 @@ def _contact_elements(contact_points, nodes, centre, node_angles, e=None, n_elem
     a = node(e)
     b = node((e + 1) % N)
     ab = b - a
-    le2 = jnp.sum(ab * ab, axis=-1)
+    le2 = _dot(ab, ab)
     le = jnp.sqrt(le2)
-    u = jnp.clip(_safe_div(jnp.sum((contact_points - a) * ab, axis=-1), le2), 0.0, 1.0) * le
+    u = jnp.clip(_safe_div(_dot(contact_points - a, ab), le2), 0.0, 1.0) * le
     ahead = u >= 0.5 * le
     prev = (e - 1) % N
     l_next = _safe_norm(node((e + 2) % N) - b)
@@ -682,15 +696,13 @@ def _equilibrate(x, f, mask):
 
 def _contact_stress(
     k_f, nodes, centre, node_angles, points, contact_points, contact_forces, contact_mask,
-    load_model, pid=None,
+    load_model,
 ):  # fmt: skip
     """Stress ``[M, 3]`` (Pa x thickness) of one particle from its contact forces (N).
 
-    ``k_f`` is the particle's ``[N, 2, M, 3]`` operator, or with ``pid`` the ``[P, N, 2, M, 3]``
-    operator of all particles, of which only particle ``pid``'s loaded blocks are read.
-
-    Each contact reads the two ``[2, M, 3]`` blocks of ``k_f`` around it, blended by the hat
-    weights into one (XLA fuses the two gathers and the blend).
+    ``k_f`` is the particle's ``[N, 2, M, 3]`` operator. Each contact reads the two
+    ``[2, M, 3]`` blocks of ``k_f`` around it, blended by the hat weights into one (XLA
+    fuses the two gathers and the blend).
     The Flamant part acts at the contact points themselves (on the true outline), not at
     their projections on the chords: the near field is very sensitive to the load position
     (projecting moved the Brazilian error from 0.1 % to 0.7 % at N = 128).
@@ -699,13 +711,36 @@ def _contact_stress(
     forces = jnp.where(contact_mask[:, None], contact_forces, 0.0)
     forces = _equilibrate(contact_points, forces, contact_mask)
     w = w.astype(k_f.dtype)[:, None, None, None]
-    if pid is None:
-        col = (1.0 - w) * k_f[lo] + w * k_f[(lo + 1) % k_f.shape[0]]
-    else:  # k_f holds every particle: read only the loaded blocks of particle pid
-        col = (1.0 - w) * k_f[pid, lo] + w * k_f[pid, (lo + 1) % k_f.shape[1]]
+    col = (1.0 - w) * k_f[lo] + w * k_f[(lo + 1) % k_f.shape[0]]
     sigma = jnp.einsum("ckmj,ck->mj", col, forces.astype(k_f.dtype))
     if load_model == "flamant":
         sigma = sigma + _flamant_field(points, contact_points, forces)
+    return sigma
+
+
+def _chosen_stress(ops, idx, contact_points, contact_forces, contact_mask):
+    """``_contact_stress`` of the particles ``idx [K]`` (lists ``[K, C]``), ``[K, M, 3]``
+    (Pa x thickness), reading only their loaded operator blocks: one gather of the
+    ``[2, 3 M]`` blocks of every contact's two elements from ``ops.stress_per_force`` seen
+    as ``[P N, 2, 3 M]`` rows, then one contraction with the hat-weighted forces. (A
+    gather indexed by particle and element inside a vmap, fused into the contraction, took
+    twice as long on CPU.)"""
+    k_f = ops.stress_per_force
+    P, N, _, M, _ = k_f.shape
+
+    def loads(i, x, f, m):
+        lo, w = _assign_contacts(x, ops.nodes[i], ops.centres[i], ops.node_angles[i])
+        return lo, w, _equilibrate(x, jnp.where(m[:, None], f, 0.0), m)
+
+    lo, w, forces = jax.vmap(loads)(idx, contact_points, contact_forces, contact_mask)
+    rows = idx[:, None] * N + jnp.concatenate([lo, (lo + 1) % N], axis=1)  # [K, 2 C]
+    w = w.astype(k_f.dtype)[..., None]
+    g = forces.astype(k_f.dtype)
+    coef = jnp.concatenate([(1.0 - w) * g, w * g], axis=1)  # [K, 2 C, 2]
+    blocks = k_f.reshape(P * N, 2, 3 * M)[rows]  # [K, 2 C, 2, 3 M]
+    sigma = jnp.einsum("kcd,kcdm->km", coef, blocks).reshape(-1, M, 3)
+    if ops.load_model == "flamant":
+        sigma = sigma + jax.vmap(_flamant_field)(ops.points[idx], contact_points, forces)
     return sigma
 
 
@@ -1404,7 +1439,7 @@ def _equilibrate_flat(x, f, mask, particle, n_particles):
     nn = jnp.maximum(count, 1).astype(f.dtype)[:, None]
     f1 = f - m * (seg(m * f) / nn)[particle]
     dx = m * (x - (seg(m * x) / nn)[particle])
-    omega = -_safe_div(seg(_cross2(dx, f1)), seg(jnp.sum(dx * dx, -1)))
+    omega = -_safe_div(seg(_cross2(dx, f1)), seg(_dot(dx, dx)))
     f2 = f1 + omega[particle][:, None] * _perp(dx)
     return jnp.where((count >= 2)[particle][:, None], f2, f)
 
@@ -1439,11 +1474,11 @@ def _flamant_near(a, b, cp, f, wts, d_min, support, c_uniaxial):
     delta is not below d_min (a contact deep inside, or far off the chord)."""
     ab = b - a
     le = jnp.maximum(_safe_norm(ab), 1e-300)
-    t = jnp.clip(jnp.sum((cp - a) * ab) / (le * le), 0.0, 1.0)
+    t = jnp.clip(_dot(cp - a, ab) / (le * le), 0.0, 1.0)
     delta = 0.5 * le / _CHORD_SAMPLES + _safe_norm(cp - a - t * ab)
     ok = d_min > delta
     gap = jnp.where(ok, d_min - delta, 1.0)
-    near = (2.0 / math.pi) * c_uniaxial * (support @ wts + _safe_norm(f) * delta / (gap * gap))
+    near = (2.0 / math.pi) * c_uniaxial * (_dot(support, wts) + _safe_norm(f) * delta / (gap * gap))
     return jnp.where(ok, near, jnp.inf)
 
 
@@ -1471,7 +1506,7 @@ def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     row_lo, row_hi = table(lo), table((lo + 1) % n_el)  # e is one of the two
 
     def remainder(row):
-        return row[:, 1 : 1 + K] @ wts
+        return _dot(row[:, 1 : 1 + K], wts)
 
     per = (1.0 - w) * remainder(row_lo) + w * remainder(row_hi)  # [G]
     if flamant:
@@ -1529,7 +1564,7 @@ def _coarse_term(row, a, b, cp, f, c_uniaxial, flamant):
     ``_coarse_rows`` row, ``a``, ``b`` the element's nodes, ``f`` the equilibrated force."""
     K = _SCREEN_DIRECTIONS
     wts = _direction_weights(f)
-    per = row[1 : 1 + K] @ wts
+    per = _dot(row[1 : 1 + K], wts)
     if flamant:
         per = per + _flamant_near(a, b, cp, f, wts, row[0], row[1 + K :], c_uniaxial)
     return jnp.where(_safe_norm(f) > 0, per, 0.0)
@@ -1837,20 +1872,7 @@ def _screen_core(
     n_cand = jnp.sum(ratio >= 1.0)
 
     def field(_):
-        stress = jax.vmap(
-            lambda i, cp, cf, cm: _contact_stress(
-                ops.stress_per_force,
-                ops.nodes[i],
-                ops.centres[i],
-                ops.node_angles[i],
-                ops.points[i],
-                cp,
-                cf,
-                cm,
-                ops.load_model,
-                pid=i,
-            )
-        )(idx, cp_k.astype(dtype), cf_k.astype(dtype), cm_k)
+        stress = _chosen_stress(ops, idx, cp_k.astype(dtype), cf_k.astype(dtype), cm_k)
         sigma = jnp.where(keep[..., None], stress / thickness[idx][:, None, None], 0.0)
         psi = jnp.where(keep, equivalent_stress(sigma, ops.poisson_ratio, ops.plane), 0.0)
         return sigma, psi
