@@ -1538,16 +1538,32 @@ def _flat_elements(ops, particle, cp, contact_mask):
     return lax.cond(exact_bins, binned, compared, None)
 
 
-def _flat_loads(ops, particle, contact_points, contact_forces, contact_mask):
-    """The bounds' common start: particle indices, contact points and equilibrated forces in
-    the tables' dtype, and psi of a unit uniaxial stress."""
+class _FlatLoads(NamedTuple):
+    """A flat contact list ready for the bounds: particle ``[S]`` (int32), points ``[S, 2]``
+    and equilibrated forces ``[S, 2]`` in the tables' dtype, mask ``[S]``, element ``[S]``."""
+
+    particle: jax.Array
+    points: jax.Array
+    forces: jax.Array
+    mask: jax.Array
+    element: jax.Array
+
+
+def _flat_loads(ops, particle, contact_points, contact_forces, contact_mask) -> _FlatLoads:
+    """The bounds' common start (computed once for both levels of ``screen``)."""
     dtype = ops.screen_table.dtype
     particle = jnp.asarray(particle, jnp.int32)
     cp = contact_points.astype(dtype)
     n = ops.lengths.shape[0]
     f = _equilibrate_flat(cp, contact_forces.astype(dtype), contact_mask, particle, n)
-    c_uni = equivalent_stress(jnp.array([1.0, 0.0, 0.0], dtype), ops.poisson_ratio, ops.plane)
-    return particle, cp, f, c_uni
+    e = _flat_elements(ops, particle, cp, contact_mask)
+    return _FlatLoads(particle, cp, f, contact_mask, e)
+
+
+def _c_uniaxial(ops):
+    """psi of a unit uniaxial stress, in the tables' dtype."""
+    unit = jnp.array([1.0, 0.0, 0.0], ops.screen_table.dtype)
+    return equivalent_stress(unit, ops.poisson_ratio, ops.plane)
 
 
 def _per_particle(ops, b, thickness):
@@ -1587,14 +1603,18 @@ def psi_bound_coarse(
     field); ``screen`` uses it to pick the particles that get the finer bound. Arguments as
     in ``psi_bound_flat``.
     """
-    loads = (contact_points, contact_forces, contact_mask)
-    particle, cp, f, c_uni = _flat_loads(ops, particle, *loads)
-    P, dtype = ops.lengths.shape[0], cp.dtype
+    loads = _flat_loads(ops, particle, contact_points, contact_forces, contact_mask)
+    return _per_particle(ops, _coarse_sums(ops, loads), thickness)
+
+
+def _coarse_sums(ops, loads: _FlatLoads):
+    """``psi_bound_coarse`` before the division by the thickness, ``[P]``."""
+    P, dtype = ops.lengths.shape[0], loads.points.dtype
     n_el = ops.node_angles.shape[1]
     if ops.screen_coarse.shape[1] != n_el:  # operators without the rows (bound_operators)
-        count = jax.ops.segment_sum(contact_mask.astype(jnp.int32), particle, num_segments=P)
+        count = jax.ops.segment_sum(loads.mask.astype(jnp.int32), loads.particle, num_segments=P)
         return jnp.where(ops.valid & (count > 0), jnp.inf, 0.0).astype(dtype)
-    e = _flat_elements(ops, particle, cp, contact_mask)
+    c_uni = _c_uniaxial(ops)
     terms = jax.vmap(
         lambda i, r, x, g: _coarse_term(
             ops.screen_coarse[i, r],
@@ -1605,9 +1625,9 @@ def psi_bound_coarse(
             c_uni,
             ops.load_model == "flamant",
         )  # fmt: skip
-    )(particle, e, cp, f)
-    b = jax.ops.segment_sum(jnp.where(contact_mask, terms, 0.0), particle, num_segments=P)
-    return _per_particle(ops, b, thickness)
+    )(loads.particle, loads.element, loads.points, loads.forces)
+    terms = jnp.where(loads.mask, terms, 0.0)
+    return jax.ops.segment_sum(terms, loads.particle, num_segments=P)
 
 
 def psi_bound_flat(
@@ -1623,13 +1643,16 @@ def psi_bound_flat(
     longest contact list): ``particle [S]`` (int) the slot each contact belongs to,
     ``contact_points``, ``contact_forces`` ``[S, 2]`` in that particle's body frame,
     ``contact_mask [S]``. Returns ``[P]`` (Pa)."""
-    loads = (contact_points, contact_forces, contact_mask)
-    particle, cp, f, c_uni = _flat_loads(ops, particle, *loads)
+    loads = _flat_loads(ops, particle, contact_points, contact_forces, contact_mask)
+    return _per_particle(ops, _fine_sums(ops, loads), thickness)
+
+
+def _fine_sums(ops, loads: _FlatLoads):
+    """``psi_bound_flat`` before the division by the thickness, ``[P]``."""
     P = ops.lengths.shape[0]
     flamant = ops.load_model == "flamant"
     n_el = ops.node_angles.shape[1]
-
-    element = _flat_elements(ops, particle, cp, contact_mask)
+    c_uni = _c_uniaxial(ops)
     terms = jax.vmap(
         lambda i, x, g, e: _bound_terms(
             lambda r: ops.screen_table[i, r],
@@ -1642,10 +1665,9 @@ def psi_bound_flat(
             c_uni,
             flamant,
         )  # fmt: skip
-    )(particle, cp, f, element)
-    terms = jnp.where(contact_mask[:, None], terms, 0.0)
-    b = jnp.max(jax.ops.segment_sum(terms, particle, num_segments=P), axis=1)
-    return _per_particle(ops, b, thickness)
+    )(loads.particle, loads.points, loads.forces, loads.element)
+    terms = jnp.where(loads.mask[:, None], terms, 0.0)
+    return jnp.max(jax.ops.segment_sum(terms, loads.particle, num_segments=P), axis=1)
 
 
 def psi_bound(
@@ -1809,24 +1831,18 @@ def _compact(contact_points, contact_forces, contact_mask, c_keep):
     )
 
 
-def _select_contacts(flat, chosen, size):
-    """The contacts of a flat list (``_flat_contacts``) whose particle is ``chosen [P]``,
-    moved in order to the front of lists of ``size`` slots: (particle, points, forces, mask,
-    how many there are; the lists hold them all if that is <= ``size``)."""
-    particle, cp, cf, mask = flat
-    take = mask & chosen[particle]
+def _select_contacts(loads: _FlatLoads, chosen, size):
+    """The contacts of ``loads`` whose particle is ``chosen [P]``, moved in order to the front
+    of lists of ``size`` slots: (``_FlatLoads`` of the lists, how many there are; the lists
+    hold them all if that is <= ``size``)."""
+    take = loads.mask & chosen[loads.particle]
     dest = jnp.where(take, jnp.cumsum(take) - 1, size)  # size: dropped
 
-    def put(buf, val):
-        return buf.at[dest].set(val, mode="drop")
+    def put(val):
+        return jnp.zeros((size, *val.shape[1:]), val.dtype).at[dest].set(val, mode="drop")
 
-    return (
-        put(jnp.zeros(size, particle.dtype), particle),
-        put(jnp.zeros((size, 2), cp.dtype), cp),
-        put(jnp.zeros((size, 2), cf.dtype), cf),
-        put(jnp.zeros(size, bool), take),
-        jnp.sum(take).astype(jnp.int32),
-    )
+    picked = _FlatLoads(*(put(v) for v in loads._replace(mask=take)))
+    return picked, jnp.sum(take).astype(jnp.int32)
 
 
 def _screen_core(
@@ -1853,13 +1869,14 @@ def _screen_core(
     elif k_coarse is None:
         bound = psi_bound_flat(ops, *flat, thickness=thickness)
     else:
-        coarse = psi_bound_coarse(ops, *flat, thickness=thickness)
+        loads = _flat_loads(ops, *flat)
+        coarse = _per_particle(ops, _coarse_sums(ops, loads), thickness)
         ratio1 = coarse / threshold
         _, idx1 = lax.top_k(ratio1, k_coarse)
         size = 8 * k_coarse if s_fine is None else s_fine
         chosen = jnp.zeros(P, bool).at[idx1].set(True)
-        *sel, n_fine = _select_contacts(flat, chosen, size)
-        fine = psi_bound_flat(ops, *sel, thickness=thickness)
+        sel, n_fine = _select_contacts(loads, chosen, size)
+        fine = _per_particle(ops, _fine_sums(ops, sel), thickness)
         bound = coarse.at[idx1].set(jnp.minimum(coarse[idx1], fine[idx1]))
         n_coarse = jnp.sum(ratio1 >= 1.0).astype(jnp.int32)
         coarse_done = (n_coarse <= k_coarse) & (n_fine <= size)
