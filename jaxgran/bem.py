@@ -101,7 +101,9 @@ def _dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Sum of ``a * b`` over the last axis, written out term by term for short axes: XLA
     then fuses it with the element-wise work around it (a reduction over an axis of 2-9
     starts a kernel of its own on CPU, and the bounds' per-contact code was mostly such
-    kernels)."""
+    kernels). Not for operands that are gathers used again elsewhere: the fusion then
+    repeats the gather for every term (``psi_batched`` took 2.6 times as long with it in
+    ``_contact_elements``)."""
     n = jnp.shape(a)[-1] if jnp.ndim(a) else 1
     if jnp.ndim(a) == 0 or n > 16:
         return jnp.sum(a * b, axis=-1)
@@ -111,9 +113,11 @@ def _dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     return out
 
 
-def _safe_norm(v: jnp.ndarray) -> jnp.ndarray:
-    """|v| over the last axis with a finite gradient at v = 0 (double where)."""
-    s = _dot(v, v)
+def _safe_norm(v: jnp.ndarray, fused: bool = False) -> jnp.ndarray:
+    """|v| over the last axis with a finite gradient at v = 0 (double where); ``fused``:
+    the sum of squares written out (``_dot``), for the bounds' per-contact code (where a
+    gathered ``v`` is used once; elsewhere XLA would repeat the gather in each term)."""
+    s = _dot(v, v) if fused else jnp.sum(v * v, axis=-1)
     pos = s > 0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
 
@@ -641,7 +645,9 @@ def _binned_element(contact_point, centre, angle, bins):
     return jnp.clip(count - 1, 0, N - 1)
 
 
-def _contact_elements(contact_points, nodes, centre, node_angles, e=None, n_elements=None):
+def _contact_elements(
+    contact_points, nodes, centre, node_angles, e=None, n_elements=None, fused=False
+):
     """The element holding each contact and its hat split over two elements.
 
     The element ``e`` is the one whose angular sector (seen from ``centre``) holds the contact:
@@ -649,7 +655,8 @@ def _contact_elements(contact_points, nodes, centre, node_angles, e=None, n_elem
     in 0..N-1, weight ``w`` in [0, 1] of element ``(lo + 1) mod N`` [C]). ``nodes`` is the
     ``[N, 2]`` array or a function returning the nodes of given indices; ``e`` the element
     if already known (``_binned_element``; ``node_angles`` is then not read, and
-    ``n_elements`` gives N).
+    ``n_elements`` gives N); ``fused``: the dot products written out (``_dot``; the bounds'
+    per-contact code).
     """
     N = node_angles.shape[0] if n_elements is None else n_elements
     if callable(nodes):
@@ -667,13 +674,18 @@ def _contact_elements(contact_points, nodes, centre, node_angles, e=None, n_elem
     a = node(e)
     b = node((e + 1) % N)
     ab = b - a
-    le2 = _dot(ab, ab)
+    if fused:
+        le2 = _dot(ab, ab)
+        along = _dot(contact_points - a, ab)
+    else:
+        le2 = jnp.sum(ab * ab, axis=-1)
+        along = jnp.sum((contact_points - a) * ab, axis=-1)
     le = jnp.sqrt(le2)
-    u = jnp.clip(_safe_div(_dot(contact_points - a, ab), le2), 0.0, 1.0) * le
+    u = jnp.clip(_safe_div(along, le2), 0.0, 1.0) * le
     ahead = u >= 0.5 * le
     prev = (e - 1) % N
-    l_next = _safe_norm(node((e + 2) % N) - b)
-    l_prev = _safe_norm(a - node(prev))
+    l_next = _safe_norm(node((e + 2) % N) - b, fused)
+    l_prev = _safe_norm(a - node(prev), fused)
     w_next = _safe_div(u - 0.5 * le, 0.5 * (le + l_next))  # weight of e + 1 when ahead
     w_prev = _safe_div(0.5 * le - u, 0.5 * (le + l_prev))  # weight of e - 1 when behind
     lo = jnp.where(ahead, e, prev)
@@ -1473,12 +1485,16 @@ def _flamant_near(a, b, cp, f, wts, d_min, support, c_uniaxial):
     chord samples' spacing) + eta, with eta the contact's distance from the chord. +inf where
     delta is not below d_min (a contact deep inside, or far off the chord)."""
     ab = b - a
-    le = jnp.maximum(_safe_norm(ab), 1e-300)
+    le = jnp.maximum(_safe_norm(ab, fused=True), 1e-300)
     t = jnp.clip(_dot(cp - a, ab) / (le * le), 0.0, 1.0)
-    delta = 0.5 * le / _CHORD_SAMPLES + _safe_norm(cp - a - t * ab)
+    delta = 0.5 * le / _CHORD_SAMPLES + _safe_norm(cp - a - t * ab, fused=True)
     ok = d_min > delta
     gap = jnp.where(ok, d_min - delta, 1.0)
-    near = (2.0 / math.pi) * c_uniaxial * (_dot(support, wts) + _safe_norm(f) * delta / (gap * gap))
+    near = (
+        (2.0 / math.pi)
+        * c_uniaxial
+        * (_dot(support, wts) + _safe_norm(f, fused=True) * delta / (gap * gap))
+    )
     return jnp.where(ok, near, jnp.inf)
 
 
@@ -1498,9 +1514,11 @@ def _bound_terms(table, nodes, centre, e, n_el, cp, f, c_uniaxial, flamant):
     read); ``centre`` is the particle's.
     """
     K = _SCREEN_DIRECTIONS
-    _, lo, w = _contact_elements(cp[None], nodes, centre, None, e=e[None], n_elements=n_el)
+    _, lo, w = _contact_elements(
+        cp[None], nodes, centre, None, e=e[None], n_elements=n_el, fused=True
+    )
     lo, w = lo[0], w[0]
-    fm = _safe_norm(f)
+    fm = _safe_norm(f, fused=True)
     wts = _direction_weights(f)  # [K]
 
     row_lo, row_hi = table(lo), table((lo + 1) % n_el)  # e is one of the two
@@ -1583,7 +1601,7 @@ def _coarse_term(row, a, b, cp, f, c_uniaxial, flamant):
     per = _dot(row[1 : 1 + K], wts)
     if flamant:
         per = per + _flamant_near(a, b, cp, f, wts, row[0], row[1 + K :], c_uniaxial)
-    return jnp.where(_safe_norm(f) > 0, per, 0.0)
+    return jnp.where(_safe_norm(f, fused=True) > 0, per, 0.0)
 
 
 def psi_bound_coarse(
