@@ -104,8 +104,8 @@ def _dot(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     kernels). Not for operands that are gathers used again elsewhere: the fusion then
     repeats the gather for every term (``psi_batched`` took 2.6 times as long with it in
     ``_contact_elements``)."""
-    n = jnp.shape(a)[-1] if jnp.ndim(a) else 1
-    if jnp.ndim(a) == 0 or n > 16:
+    n = jnp.shape(a)[-1]
+    if n > 16:
         return jnp.sum(a * b, axis=-1)
     out = a[..., 0] * b[..., 0]
     for k in range(1, n):
