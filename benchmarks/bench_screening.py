@@ -150,10 +150,10 @@ def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):
     def coarse(o, c, f, m, fp, fx, ff, fm, th=th):
         return bem.psi_bound_coarse(o, fp, fx, ff, fm, thickness=th)
 
-    def scr(k, thr, c_keep, k1):
+    def scr(k, thr, c_keep, k1, s1):
         def fn(o, c, f, m, *flat, th=th):
             t = jnp.asarray(thr, dt)
-            return bem._screen_core(o, c, f, m, t, th, k, flat, c_keep, k1).psi
+            return bem._screen_core(o, c, f, m, t, th, k, flat, c_keep, k1, s1).psi
 
         return fn
 
@@ -179,10 +179,10 @@ def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):
     }
     for r in rows:
         label = (
-            f"screening, {r['threshold']} (K1 = {r['K1']}, K = {r['K']}, "
+            f"screening, {r['threshold']} (S1 = {r['S1']}, K = {r['K']}, "
             f"{r['c_keep']} contact slots)"
         )
-        kinds[label] = scr(r["K"], r["eps_Pa"], r["c_keep"], r["K1"])
+        kinds[label] = scr(r["K"], r["eps_Pa"], r["c_keep"], r["K1"], r["S1"])
 
     def segment():
         return run_segment(st, pr, grid, 1, args.steps)
@@ -296,7 +296,8 @@ def main() -> None:
                 "eps_Pa": thr,
                 "reaching": len(ref),
                 "coarse": int(s.n_coarse),
-                "K1": coarse_slots(int(s.n_coarse), n_act),
+                "fine_contacts": int(s.n_fine_contacts),
+                **fine_slots(int(s.n_fine_contacts), n_act),
                 "candidates": int(s.n_candidates),
                 "K": int(s.candidates.shape[0]),
                 "c_keep": min(max_contacts, max(8, 1 << (int(s.max_contacts) - 1).bit_length())),
@@ -311,7 +312,8 @@ def main() -> None:
         raise AssertionError("a particle passed a threshold above every bound")
     rows.append(
         {"threshold": "none (eps = 1.5 x the largest bound)", "eps_Pa": thr, "reaching": 0,
-         "coarse": int(s.n_coarse), "K1": coarse_slots(int(s.n_coarse), n_act),
+         "coarse": int(s.n_coarse), "fine_contacts": int(s.n_fine_contacts),
+         **fine_slots(int(s.n_fine_contacts), n_act),
          "candidates": 0, "K": 64, "c_keep": 8}
     )  # fmt: skip
 
@@ -352,13 +354,16 @@ def main() -> None:
     write_markdown(out, Path(args.out + ".md"), args)
 
 
-def coarse_slots(n_coarse: int, n_particles: int, first: int = 128) -> int | None:
-    """The coarse-level slots ``bem.screen`` settles on (its default first try, doubled
-    until they hold every particle passing the coarse bound; None: no coarse level)."""
-    k1 = first
-    while k1 < n_coarse:
-        k1 *= 2
-    return None if k1 >= n_particles else k1
+def fine_slots(n_fine: int, n_particles: int, first: int = 128) -> dict:
+    """The fine level's sizes ``bem.screen`` settles on: ``K1`` its ``max_coarse`` (None: no
+    coarse level) and ``S1`` the contact slots, 8 K1 first, then the next power of two
+    holding the contacts of every particle passing the coarse bound."""
+    if first >= n_particles:
+        return {"K1": None, "S1": None}
+    s1 = 8 * first
+    if n_fine > s1:
+        s1 = 1 << (n_fine - 1).bit_length()
+    return {"K1": first, "S1": s1}
 
 
 def write_markdown(out, path: Path, args) -> None:
@@ -393,24 +398,24 @@ def write_markdown(out, path: Path, args) -> None:
         "interpolation between force directions, and the Flamant near field and the smooth "
         "remainder bounded apart).",
         "",
-        "| threshold eps at which | particles reaching eps | passing the coarse bound | K1 "
-        "| passing the bound | K |",
-        "|---|---|---|---|---|---|",
+        "| threshold eps at which | particles reaching eps | passing the coarse bound "
+        "| their contacts | S1 | passing the bound | K |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in out["thresholds"]:
         what = r["threshold"]
         what = what if what.startswith("none") else f"{what} reaches it"
         lines.append(
-            f"| {what} | {r['reaching']} | {r['coarse']} | {r['K1']} | {r['candidates']} "
-            f"| {r['K']} |"
+            f"| {what} | {r['reaching']} | {r['coarse']} | {r['fine_contacts']} | {r['S1']} "
+            f"| {r['candidates']} | {r['K']} |"
         )
     lines += [
         "",
         "At each threshold the screening returned exactly the particles whose full field "
         "reaches eps. Its levels: the coarse bound of every particle (one table row per "
-        "contact), the bound of the K1 particles with the largest coarse bound, the field of "
-        "the K with the largest bound. When no particle passes the bound the candidates' "
-        "field is skipped (`lax.cond`).",
+        "contact), the finer bound of the particles passing the coarse one (their contacts "
+        "moved into S1 slots), the field of those passing the finer bound (K slots). When no "
+        "particle passes the bound the candidates' field is skipped (`lax.cond`).",
         "",
         "`paired`: the marginal cost timed right after a contact segment of "
         f"{args.steps} steps, repeat by repeat, as a percentage of that segment's step; the "
