@@ -150,10 +150,10 @@ def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):
     def coarse(o, c, f, m, fp, fx, ff, fm, th=th):
         return bem.psi_bound_coarse(o, fp, fx, ff, fm, thickness=th)
 
-    def scr(k, thr, c_keep, k1, s1):
+    def scr(k, thr, c_keep, s1):
         def fn(o, c, f, m, *flat, th=th):
             t = jnp.asarray(thr, dt)
-            return bem._screen_core(o, c, f, m, t, th, k, flat, c_keep, k1, s1).psi
+            return bem._screen_core(o, c, f, m, t, th, k, flat, c_keep, s1).psi
 
         return fn
 
@@ -182,7 +182,7 @@ def time_dtype(dt, ops64, state, params, grid, cp, cf, cm, thick, rows, args):
             f"screening, {r['threshold']} (S1 = {r['S1']}, K = {r['K']}, "
             f"{r['c_keep']} contact slots)"
         )
-        kinds[label] = scr(r["K"], r["eps_Pa"], r["c_keep"], r["K1"], r["S1"])
+        kinds[label] = scr(r["K"], r["eps_Pa"], r["c_keep"], r["S1"])
 
     def segment():
         return run_segment(st, pr, grid, 1, args.steps)
@@ -254,6 +254,7 @@ def main() -> None:
     tab = table(max_contacts)
     act = np.flatnonzero(np.asarray(p.active))
     cp, cf, cm = (np.asarray(tab[k])[act] for k in ("points", "forces", "mask"))
+    n_flat = bem._flat_contacts(cp, cf, cm)[0].shape[0]
     ops64 = bem.build_operators(
         p.verts[act], p.n_verts[act], p.radius[act], n_elements=64, n_points=100,
         poisson_ratio=0.3,
@@ -286,7 +287,7 @@ def main() -> None:
         thr = float(psi_max.max() if q is None else np.percentile(psi_max, q))
         thr *= 1.0 - 1e-6  # just below: equality would be decided by rounding
         ref = set(np.flatnonzero(psi_max >= thr).tolist())
-        s = bem.screen(ops64, cp, cf, cm, thr, thickness=thick, max_candidates=8)
+        s = bem.screen(ops64, cp, cf, cm, thr, thickness=thick, max_candidates=8, fine_slots=8)
         got = set(np.asarray(s.candidates)[np.asarray(s.reaches)].tolist())
         if got != ref:
             raise AssertionError(f"screening missed or added particles at {label}")
@@ -297,7 +298,7 @@ def main() -> None:
                 "reaching": len(ref),
                 "coarse": int(s.n_coarse),
                 "fine_contacts": int(s.n_fine_contacts),
-                **fine_slots(int(s.n_fine_contacts), n_act),
+                "S1": fine_slots(int(s.n_fine_contacts), n_flat),
                 "candidates": int(s.n_candidates),
                 "K": int(s.candidates.shape[0]),
                 "c_keep": min(max_contacts, max(8, 1 << (int(s.max_contacts) - 1).bit_length())),
@@ -307,13 +308,13 @@ def main() -> None:
     # the common case while a packing is loaded: nothing near breakage, no particle passes the
     # bound and the candidates' field is skipped (K = 64 slots, as at the onset)
     thr = 1.5 * float(bound.max())
-    s = bem.screen(ops64, cp, cf, cm, thr, thickness=thick, max_candidates=64)
+    s = bem.screen(ops64, cp, cf, cm, thr, thickness=thick, max_candidates=64, fine_slots=8)
     if int(s.n_candidates) or bool(np.any(np.asarray(s.reaches))):
         raise AssertionError("a particle passed a threshold above every bound")
     rows.append(
         {"threshold": "none (eps = 1.5 x the largest bound)", "eps_Pa": thr, "reaching": 0,
          "coarse": int(s.n_coarse), "fine_contacts": int(s.n_fine_contacts),
-         **fine_slots(int(s.n_fine_contacts), n_act),
+         "S1": fine_slots(int(s.n_fine_contacts), n_flat),
          "candidates": 0, "K": 64, "c_keep": 8}
     )  # fmt: skip
 
@@ -354,16 +355,13 @@ def main() -> None:
     write_markdown(out, Path(args.out + ".md"), args)
 
 
-def fine_slots(n_fine: int, n_particles: int, first: int = 128) -> dict:
-    """The fine level's sizes ``bem.screen`` settles on: ``K1`` its ``max_coarse`` (None: no
-    coarse level) and ``S1`` the contact slots, 8 K1 first, then the next power of two
-    holding the contacts of every particle passing the coarse bound."""
-    if first >= n_particles:
-        return {"K1": None, "S1": None}
-    s1 = 8 * first
-    if n_fine > s1:
-        s1 = 1 << (n_fine - 1).bit_length()
-    return {"K1": first, "S1": s1}
+def fine_slots(n_fine: int, n_flat: int, first: int = 8) -> int | None:
+    """The fine level's contact slots ``bem.screen(..., fine_slots=first)`` settles on, as K
+    is sized: ``first``, or the next power of two holding the contacts of every particle
+    passing the coarse bound (None: no coarse level, when that reaches the flat list's
+    ``n_flat`` slots)."""
+    s1 = first if n_fine <= first else 1 << (n_fine - 1).bit_length()
+    return None if s1 >= n_flat else s1
 
 
 def write_markdown(out, path: Path, args) -> None:
@@ -414,8 +412,11 @@ def write_markdown(out, path: Path, args) -> None:
         "At each threshold the screening returned exactly the particles whose full field "
         "reaches eps. Its levels: the coarse bound of every particle (one table row per "
         "contact), the finer bound of the particles passing the coarse one (their contacts "
-        "moved into S1 slots), the field of those passing the finer bound (K slots). When no "
-        "particle passes the bound the candidates' field is skipped (`lax.cond`).",
+        "moved into S1 slots), the field of those passing the finer bound (K slots). S1 and "
+        "K are the sizes `bem.screen` settles on from 8 (`fine_slots=8`, `max_candidates=8`): "
+        "the next power of two holding what passes, as a loop that screens every step and "
+        "passes on its last sizes would use them. When no particle passes the bound the "
+        "candidates' field is skipped (`lax.cond`).",
         "",
         "`paired`: the marginal cost timed right after a contact segment of "
         f"{args.steps} steps, repeat by repeat, as a percentage of that segment's step; the "

@@ -1865,15 +1865,15 @@ def _select_contacts(loads: _FlatLoads, chosen, size):
 
 def _screen_core(
     ops, contact_points, contact_forces, contact_mask, threshold, thickness, k, flat=None,
-    c_keep=None, k_coarse=None, s_fine=None,
+    c_keep=None, s_fine=None,
 ):  # fmt: skip
     """The levels of ``screen`` for K = ``k`` candidate slots (jit-able); ``flat``: the
     same contacts as ``_flat_contacts`` (the bound then costs per real contact); ``c_keep``:
     the candidates' field is taken over their real contacts moved to the first ``c_keep``
     slots (fewer padded slots to process; ``complete`` is False if one has more);
-    ``k_coarse`` (with ``flat``): the coarse bound first, then the fine bound only for the
+    ``s_fine`` (with ``flat``): the coarse bound first, then the fine bound only for the
     particles whose coarse bound reaches the threshold, over their real contacts moved into
-    ``s_fine`` slots (default ``8 k_coarse``; ``complete`` is False if they overflow)."""
+    ``s_fine`` slots (``complete`` is False if they overflow)."""
     P = ops.lengths.shape[0]
     dtype = ops.screen_table.dtype
     thickness = jnp.broadcast_to(jnp.asarray(thickness, dtype), (P,))
@@ -1883,14 +1883,14 @@ def _screen_core(
     n_fine = jnp.asarray(0, jnp.int32)
     if flat is None:
         bound = psi_bound(ops, contact_points, contact_forces, contact_mask, thickness=thickness)
-    elif k_coarse is None:
+    elif s_fine is None:
         bound = psi_bound_flat(ops, *flat, thickness=thickness)
     else:
         loads = _flat_loads(ops, *flat)
         coarse = _per_particle(ops, _coarse_sums(ops, loads), thickness)
-        # a mask, not the top k1: a top_k over P is a sort (0.13 ms for 1,000 particles on CPU)
+        # a mask, not a top k: a top_k over P is a sort (0.13 ms for 1,000 particles on CPU)
         chosen = coarse / threshold >= 1.0
-        size = 8 * k_coarse if s_fine is None else s_fine
+        size = s_fine
         sel, n_fine = _select_contacts(loads, chosen, size)
         fine = _per_particle(ops, _fine_sums(ops, sel), thickness)
         bound = jnp.where(chosen, jnp.minimum(coarse, fine), coarse)
@@ -1950,7 +1950,7 @@ def screen(
     *,
     thickness: float | ArrayLike = 1.0,
     max_candidates: int = 64,
-    max_coarse: int | None = 128,
+    fine_slots: int | None = 1024,
 ) -> Screening:
     """Which particles can reach psi >= ``threshold``, with their exact field (host call).
 
@@ -1961,19 +1961,21 @@ def screen(
     is the same as thresholding ``psi_batched`` of all particles: particles left out are
     proven below the threshold. If a level's slots cannot hold what the level before passes
     (contacts of the fine level, particles of the field), the call is repeated with the next
-    power of two at or above their count (the K used is ``Screening.candidates.shape[0]``;
-    each size compiles once), so nothing is cut. The candidates' bound and field run over
-    their real contacts only (padded to a power of two, at least 8 slots or the list's
-    length).
+    power of two at or above their count (the K used is ``Screening.candidates.shape[0]``,
+    the fine level's contacts ``Screening.n_fine_contacts``; each size compiles once), so
+    nothing is cut. A loop that screens every step can pass the sizes the last call settled
+    on: the cost of each level follows its slots, filled or not. The candidates' bound and
+    field run over their real contacts only (padded to a power of two, at least 8 slots or
+    the list's length).
 
     Args:
         ops, contact_points, contact_forces, contact_mask, thickness: as in ``psi_batched``.
         threshold: psi threshold (Pa), scalar or ``[P]``, > 0.
         max_candidates: K, candidate slots of the first attempt (static: one compilation
             per K).
-        max_coarse: the fine level's contact slots in the first attempt are
-            ``8 max_coarse``; None (or at least P) skips the coarse level and bounds every
-            particle finely.
+        fine_slots: contact slots of the fine level in the first attempt (static); None,
+            or at least as many as the flat list of real contacts holds, skips the coarse
+            level and bounds every particle finely.
 
     Returns:
         ``Screening``.
@@ -1996,17 +1998,18 @@ def screen(
     c_max = args[3].shape[1]
     c_keep = min(c_max, 8)
 
-    def coarse_slots(n):
-        return None if n is None or n >= P else max(1, int(n))
-
-    k1 = coarse_slots(max_coarse)
-    s1 = None if k1 is None else 8 * k1
+    if fine_slots is not None and int(fine_slots) < 1:
+        raise ValueError(f"fine_slots must be >= 1 or None, got {fine_slots}")
+    s1 = None if fine_slots is None else int(fine_slots)
+    if s1 is not None and s1 >= flat[0].shape[0]:
+        s1 = None  # the fine bound of every contact costs no more than the slots
     while True:
-        res = _screen_jit(*args, k, flat, c_keep, k1, s1)
+        res = _screen_jit(*args, k, flat, c_keep, s1)
         if bool(res.complete):
             return res
-        if k1 is not None and int(res.n_fine_contacts) > s1:
+        if s1 is not None and int(res.n_fine_contacts) > s1:
             s1 = 1 << (int(res.n_fine_contacts) - 1).bit_length()
+            s1 = None if s1 >= flat[0].shape[0] else s1
         elif int(res.n_candidates) > k:
             k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())
         c_keep = max(c_keep, min(c_max, 1 << (int(res.max_contacts) - 1).bit_length()))

@@ -668,21 +668,21 @@ def test_psi_bound_flags_a_contact_pushed_inside(batch):
     assert np.isinf(b[1]) and np.all(np.isfinite(np.delete(b, 1)))
 
 
-@pytest.mark.parametrize("max_coarse", [None, 1])
+@pytest.mark.parametrize("fine_slots", [None, 1])
 @pytest.mark.parametrize("quantile", [100.0, 75.0, 30.0])
-def test_screen_matches_thresholding_the_full_field(batch, quantile, max_coarse):
+def test_screen_matches_thresholding_the_full_field(batch, quantile, fine_slots):
     """The screening returns exactly the particles whose full field reaches the threshold,
     with their field; a candidate list that is too short is regrown, not cut, and so is the
-    list of particles that the coarse level passes to the fine bound (``max_coarse=1``)."""
+    list of contacts that the coarse level passes to the fine bound (``fine_slots=1``)."""
     *_, ops, _, _, _ = batch
     cp, cf, mask = random_loads(ops, 5, 7)
     sigma, psi = bem.psi_batched(ops, cp, cf, mask)
     psi_max = np.asarray(psi).max(1)
     # just below a particle's value: a threshold equal to it would be decided by rounding
     thr = np.percentile(psi_max[:-1], quantile) * (1.0 - 1e-9)
-    res = bem.screen(ops, cp, cf, mask, thr, max_candidates=1, max_coarse=max_coarse)
+    res = bem.screen(ops, cp, cf, mask, thr, max_candidates=1, fine_slots=fine_slots)
     assert bool(res.complete) and int(res.n_candidates) <= res.candidates.shape[0]
-    if max_coarse is not None:
+    if fine_slots is not None:
         assert int(res.n_coarse) >= int(res.n_candidates) >= 1
     idx = np.asarray(res.candidates)
     got = set(idx[np.asarray(res.reaches)].tolist())
@@ -755,18 +755,18 @@ def test_coarse_level_gives_the_fine_bound_of_the_particles_it_passes(batch):
     fine = np.asarray(bem.psi_bound_flat(ops, *flat))
     coarse = np.asarray(bem.psi_bound_coarse(ops, *flat))
     thr = 0.5 * np.max(fine[:-1])
-    k1 = 2
-    res = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, P, flat, 8, k1, 8 * k1)
+    s1 = 16
+    res = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, P, flat, 8, s1)
     passed = coarse / thr >= 1.0
     assert 0 < passed.sum() < P  # the coarse level rules some particles out, not all
     want = np.where(passed, np.minimum(coarse, fine), coarse)
     np.testing.assert_allclose(np.asarray(res.bound), want, rtol=1e-12)
     assert int(res.n_coarse) == int(passed.sum())
     assert int(res.n_fine_contacts) == int(mask[passed].sum())
-    assert bool(res.complete) == (int(mask[passed].sum()) <= 8 * k1)
-    short = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, P, flat, 8, k1, 1)
+    assert bool(res.complete) == (int(mask[passed].sum()) <= s1)
+    short = bem._screen_jit(ops, cp, cf, mask, thr, 1.0, P, flat, 8, 1)
     assert not bool(short.complete)
-    full = bem.screen(ops, cp, cf, mask, thr, max_candidates=1, max_coarse=1)
+    full = bem.screen(ops, cp, cf, mask, thr, max_candidates=1, fine_slots=1)
     assert bool(full.complete)
     assert set(np.asarray(full.candidates)[np.asarray(full.is_candidate)].tolist()) == set(
         np.flatnonzero(fine >= thr).tolist()
@@ -778,6 +778,8 @@ def test_screen_rejects_bad_threshold(batch):
     for thr in (0.0, -1.0, np.nan):
         with pytest.raises(ValueError, match="threshold"):
             bem.screen(ops, cp, cf, mask, thr)
+    with pytest.raises(ValueError, match="fine_slots"):
+        bem.screen(ops, cp, cf, mask, 1.0, fine_slots=0)
 
 
 def test_flat_bound_equals_padded_bound(batch):
