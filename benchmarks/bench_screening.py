@@ -306,7 +306,7 @@ def main() -> None:
         )
         print(rows[-1], flush=True)
     # the common case while a packing is loaded: nothing near breakage, no particle passes the
-    # bound and the candidates' field is skipped (K = 64 slots, as at the onset)
+    # bound and the candidates' field is skipped (K = 64 slots)
     thr = 1.5 * float(bound.max())
     s = bem.screen(ops64, cp, cf, cm, thr, thickness=thick, max_candidates=64, fine_slots=8)
     if int(s.n_candidates) or bool(np.any(np.asarray(s.reaches))):

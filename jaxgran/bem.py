@@ -1890,12 +1890,11 @@ def _screen_core(
         coarse = _per_particle(ops, _coarse_sums(ops, loads), thickness)
         # a mask, not a top k: a top_k over P is a sort (0.13 ms for 1,000 particles on CPU)
         chosen = coarse / threshold >= 1.0
-        size = s_fine
-        sel, n_fine = _select_contacts(loads, chosen, size)
+        sel, n_fine = _select_contacts(loads, chosen, s_fine)
         fine = _per_particle(ops, _fine_sums(ops, sel), thickness)
         bound = jnp.where(chosen, jnp.minimum(coarse, fine), coarse)
         n_coarse = jnp.sum(chosen).astype(jnp.int32)
-        coarse_done = n_fine <= size
+        coarse_done = n_fine <= s_fine
     ratio = bound / threshold
     passing = ratio >= 1.0
     n_cand = jnp.sum(passing)
@@ -1983,6 +1982,8 @@ def screen(
     thr = np.asarray(threshold, dtype=float)
     if not np.all(np.isfinite(thr)) or np.any(thr <= 0):
         raise ValueError("threshold must be finite and > 0")
+    if fine_slots is not None and int(fine_slots) < 1:
+        raise ValueError(f"fine_slots must be >= 1 or None, got {fine_slots}")
     P = ops.lengths.shape[0]
     k = max(1, min(int(max_candidates), P))
     dtype = ops.screen_table.dtype
@@ -1998,8 +1999,6 @@ def screen(
     c_max = args[3].shape[1]
     c_keep = min(c_max, 8)
 
-    if fine_slots is not None and int(fine_slots) < 1:
-        raise ValueError(f"fine_slots must be >= 1 or None, got {fine_slots}")
     s1 = None if fine_slots is None else int(fine_slots)
     if s1 is not None and s1 >= flat[0].shape[0]:
         s1 = None  # the fine bound of every contact costs no more than the slots
