@@ -360,7 +360,9 @@ def fine_slots(n_fine: int, n_flat: int, first: int = 8) -> int | None:
     is sized: ``first``, or the next power of two holding the contacts of every particle
     passing the coarse bound (None: no coarse level, when that reaches the flat list's
     ``n_flat`` slots)."""
-    s1 = first if n_fine <= first else 1 << (n_fine - 1).bit_length()
+    from jaxgran import bem
+
+    s1 = bem._pow2(n_fine, first)
     return None if s1 >= n_flat else s1
 
 

@@ -845,9 +845,10 @@ def _bucket(n: int, step: int) -> int:
     return max(step, -(-n // step) * step)
 
 
-def _pow2(n: int) -> int:
-    """Next power of two >= max(n, 64): the padded count of query points."""
-    return max(64, 1 << (max(n, 1) - 1).bit_length())
+def _pow2(n: int, floor: int = 64) -> int:
+    """Next power of two >= max(n, floor) (``floor`` a power of two): padded counts (query
+    points, contact lists, screening slots) that compile once per size."""
+    return max(floor, 1 << (max(n, 1) - 1).bit_length())
 
 
 def _pad_rows(x: np.ndarray, size: int) -> np.ndarray:
@@ -1822,7 +1823,7 @@ def _flat_contacts(contact_points, contact_forces, contact_mask):
     (at least 8) so that the compiled bound is reused: (particle, points, forces, mask)."""
     mask = np.asarray(contact_mask, bool)
     rows, cols = np.nonzero(mask)
-    size = max(8, 1 << max(len(rows) - 1, 0).bit_length())
+    size = _pow2(len(rows), 8)
     pad = size - len(rows)
     cp, cf = np.asarray(contact_points), np.asarray(contact_forces)
     return (
@@ -1999,16 +2000,16 @@ def screen(
     c_max = args[3].shape[1]
     c_keep = min(c_max, 8)
 
-    s1 = None if fine_slots is None else int(fine_slots)
-    if s1 is not None and s1 >= flat[0].shape[0]:
-        s1 = None  # the fine bound of every contact costs no more than the slots
+    def fine(slots):  # None: the fine bound of every contact costs no more than the slots
+        return None if slots is None or slots >= flat[0].shape[0] else int(slots)
+
+    s1 = fine(fine_slots)
     while True:
         res = _screen_jit(*args, k, flat, c_keep, s1)
         if bool(res.complete):
             return res
         if s1 is not None and int(res.n_fine_contacts) > s1:
-            s1 = 1 << (int(res.n_fine_contacts) - 1).bit_length()
-            s1 = None if s1 >= flat[0].shape[0] else s1
+            s1 = fine(_pow2(int(res.n_fine_contacts), 1))
         elif int(res.n_candidates) > k:
-            k = min(P, 1 << (int(res.n_candidates) - 1).bit_length())
-        c_keep = max(c_keep, min(c_max, 1 << (int(res.max_contacts) - 1).bit_length()))
+            k = min(P, _pow2(int(res.n_candidates), 1))
+        c_keep = max(c_keep, min(c_max, _pow2(int(res.max_contacts), 1)))
