@@ -103,7 +103,9 @@ def build_pairs(
 
     Returns the new :class:`Contacts` and the error bits (cell overflow, pair overflow,
     particle outside the domain). On overflow the list holds the first ``C`` pairs only and
-    must not be used: the host grows the capacity and repeats the segment.
+    must not be used: the host grows the capacity (to :func:`jaxgran.simulate.pair_capacity_needed`)
+    and repeats the segment. ``n_pairs`` is then the largest count any build since the
+    overflow found, above ``C``.
     """
     n_p = p.pos.shape[0]
     cap = contacts.pairs.shape[0]
@@ -123,9 +125,12 @@ def build_pairs(
         contacts.xi[:, jnp.clip(where_old, 0)],
         0.0,
     )
+    # after an overflow the count stays at the largest one found, so the host can grow the
+    # capacity to what the segment needed in one step (the segment is repeated anyway)
+    overflowed = contacts.n_pairs > cap
     new = Contacts(
         pairs=pairs,
-        n_pairs=jnp.minimum(n_pairs, cap),
+        n_pairs=jnp.where(overflowed, jnp.maximum(contacts.n_pairs, n_pairs), n_pairs),
         xi=xi,
         wall_xi=contacts.wall_xi,
         ref_pos=p.pos,

@@ -142,6 +142,20 @@ class RunResult:
     params: Params | None = None
 
 
+def pair_capacity_needed(contacts: Contacts) -> int:
+    """Pair capacity to grow to after a pair overflow: the capacity doubled as often as it
+    takes to hold the largest count a build needed (``contacts.n_pairs``, which after an
+    overflow keeps the largest count found; the largest over the realisations of a batch),
+    at least once. The capacities are those repeated doubling reaches, so compiled shapes
+    are shared, in one regrowth (one compilation) instead of one per doubling."""
+    c = int(contacts.pairs.shape[-2])
+    need = int(np.max(np.asarray(contacts.n_pairs)))
+    new = 2 * c
+    while new < need:
+        new *= 2
+    return new
+
+
 def _fatal(err: int, state: SimState) -> None:
     if err & ERR_NAN:
         raise SimulationError(
@@ -285,7 +299,7 @@ def simulate(
                     raise SimulationError(f"capacity still exceeded after {tries} regrowths")
                 # the list fitted at the segment start, so padding it and repeating the
                 # segment reproduces exactly what an ample capacity would have given
-                start, grid = _grow(start, grid, err, regrows)
+                start, grid = _grow(start, grid, err, regrows, pair_capacity_needed(new.contacts))
                 tries += 1
                 continue
             break
@@ -344,7 +358,11 @@ def simulate(
     )
 
 
-def _grow(state: SimState, grid: Grid, err: int, regrows: list[str]) -> tuple[SimState, Grid]:
+def _grow(
+    state: SimState, grid: Grid, err: int, regrows: list[str], new_pairs: int
+) -> tuple[SimState, Grid]:
+    """Double the cell capacity on a cell overflow; grow the pair capacity to ``new_pairs``
+    (:func:`pair_capacity_needed` of the overflowing run) on a pair overflow."""
     if err & ERR_CELL_OVERFLOW:
         new_cap = grid.cell_capacity * 2
         msg = f"cell capacity {grid.cell_capacity} exceeded; grown to {new_cap}"
@@ -353,7 +371,7 @@ def _grow(state: SimState, grid: Grid, err: int, regrows: list[str]) -> tuple[Si
         log.info(msg)
     if err & ERR_PAIR_OVERFLOW:
         c = state.contacts.pairs.shape[0]
-        new_c = int(c * 2)
+        new_c = int(new_pairs)
         msg = f"pair capacity {c} exceeded; grown to {new_c}"
         state = replace(state, contacts=grow_pairs(state.contacts, new_c))
         regrows.append(msg)
@@ -366,7 +384,7 @@ def _grow_until_ok(state, params, grid, err, regrows, max_regrows):
     while err & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
         if tries >= max_regrows:
             raise SimulationError(f"capacity still exceeded after {tries} regrowths")
-        state, grid = _grow(state, grid, err, regrows)
+        state, grid = _grow(state, grid, err, regrows, pair_capacity_needed(state.contacts))
         state, e = prepare(state, params, grid)
         err = int(e)
         tries += 1

@@ -141,7 +141,8 @@ class Contacts(eqx.Module):
     Attributes:
         pairs: ``[C, 2]`` int32 particle indices (i < j), padded with the sentinel ``P``; sorted
             by key ``i * P + j`` so the history can be carried over a rebuild by search.
-        n_pairs: number of valid pairs (int32 scalar).
+        n_pairs: number of valid pairs (int32 scalar); above the capacity after an overflow,
+            the largest number a build needed since.
         xi: tangential spring ``[2, C, 2, V]`` (m): (x, y) component first, then per pair, per
             direction (0: vertices of i against j; 1: vertices of j against i) and per vertex.
         wall_xi: tangential spring against walls ``[2, P, W, V]`` (m).

@@ -55,7 +55,7 @@ from jax import Array
 from .. import bem
 from ..contact import pair_forces, wall_forces
 from ..geometry import polygon_area_padded
-from ..simulate import SimulationError, grow_pairs, prepare
+from ..simulate import SimulationError, grow_pairs, pair_capacity_needed, prepare
 from ..state import (
     ERR_CELL_OVERFLOW,
     ERR_LEFT_DOMAIN,
@@ -889,9 +889,9 @@ class DsmBreakage:
             if not err & (ERR_PAIR_OVERFLOW | ERR_CELL_OVERFLOW):
                 break
             if err & ERR_PAIR_OVERFLOW:
-                c = state.contacts.pairs.shape[0]
-                state = replace(state, contacts=grow_pairs(state.contacts, 2 * c))
-                self._note(f"pair capacity {c} exceeded after breakage; grown to {2 * c}")
+                c, new_c = state.contacts.pairs.shape[0], pair_capacity_needed(state.contacts)
+                state = replace(state, contacts=grow_pairs(state.contacts, new_c))
+                self._note(f"pair capacity {c} exceeded after breakage; grown to {new_c}")
             if err & ERR_CELL_OVERFLOW:
                 cap = self.grid.cell_capacity
                 self.grid = dataclasses.replace(self.grid, cell_capacity=2 * cap)
