@@ -118,7 +118,11 @@ def _k_n(problem, res):
 
 def test_identical_twin_recovers_normal_stiffness(identical_twin):
     problem = identical_twin
-    res = fit.adam(problem, learning_rate=0.06, steps=20, tol=1e-2, log=lambda *_: None)
+    # stop once the misfit is a third of the targets' uncertainty (loss = mean squared
+    # z-score < 0.1); Adam's momentum carries it past the optimum otherwise, and it would
+    # spend the remaining steps coming back
+    res = fit.adam(problem, learning_rate=0.06, steps=20, tol=0.1, log=lambda *_: None)
+    assert res["loss"] < 0.1 and res["simulations"] < 20
     assert res["history"]["loss"][0] > 100 * res["loss"]
     # sigma_t and S move by ~0.7 % per % of K_n, so the 1 % target uncertainties resolve K_n
     # to ~1 % (1 sigma); the fit must land within 2 sigma of the truth
