@@ -61,14 +61,7 @@ from .analysis import summary_stats
 from .integrate import initial_forces, step
 from .partition import needs_rebuild
 from .scenes.bonded import Control, apply_control, n_broken, segment
-from .simulate import (
-    Record,
-    RunResult,
-    SimulationError,
-    grow_pairs,
-    pair_capacity_needed,
-    record,
-)
+from .simulate import Record, RunResult, SimulationError, grow_capacities, record
 from .state import (
     ERR_CELL_OVERFLOW,
     ERR_LEFT_DOMAIN,
@@ -361,22 +354,6 @@ def _fatal(err: np.ndarray) -> None:
     raise SimulationError(f"realisation {k}: {names}; {what}")
 
 
-def _grow(states, grid: Grid, err: int, regrows: list[str], batched: bool, new_pairs: int):
-    """As :func:`jaxgran.simulate._grow`, for one state or a batch."""
-    if err & ERR_CELL_OVERFLOW:
-        new = grid.cell_capacity * 2
-        regrows.append(f"cell capacity {grid.cell_capacity} exceeded; grown to {new}")
-        grid = dataclasses.replace(grid, cell_capacity=new)
-    if err & ERR_PAIR_OVERFLOW:
-        c = states.contacts.pairs.shape[-2]
-        regrows.append(f"pair capacity {c} exceeded; grown to {new_pairs}")
-        grow = lambda cts: grow_pairs(cts, new_pairs)
-        contacts = jax.vmap(grow)(states.contacts) if batched else grow(states.contacts)
-        states = replace(states, contacts=contacts)
-    log.info(regrows[-1])
-    return states, grid
-
-
 def drive(
     state: SimState,
     params: Params,
@@ -425,8 +402,7 @@ def drive(
         ready, err = prep(state, grid)
         err_all = int(np.bitwise_or.reduce(np.atleast_1d(to_host(err))))
         if err_all & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW) and tries < max_regrows:
-            need = pair_capacity_needed(ready.contacts)
-            state, grid = _grow(state, grid, err_all, regrows, batched, need)
+            state, grid = grow_capacities(state, ready, grid, err_all, regrows, batched)
             if mesh is not None and batched:
                 state = shard(state, mesh)
             tries += 1
@@ -460,8 +436,7 @@ def drive(
             if err_all & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
                 if tries >= max_regrows:
                     raise SimulationError(f"capacity still exceeded after {tries} regrowths")
-                need = pair_capacity_needed(new.contacts)
-                start, grid = _grow(start, grid, err_all, regrows, batched, need)
+                start, grid = grow_capacities(start, new, grid, err_all, regrows, batched)
                 if mesh is not None and batched:
                     start = shard(start, mesh)
                 tries += 1

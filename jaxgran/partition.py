@@ -16,6 +16,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from .state import (
@@ -72,6 +73,21 @@ def candidate_pairs(p: Particles, skin: Array, grid: Grid) -> tuple[Array, Array
     ok = slot_ok & (cand > ii) & p.active[:, None, None] & p.active[cand] & (dist < reach)
     cand = jnp.where(ok, cand, n_p).reshape(n_p, -1)
     return jnp.sort(cand, axis=1), errors
+
+
+def cell_count_max(particles: Particles, grid: Grid) -> int:
+    """Largest number of active particles in one cell of ``grid`` (host side), over every
+    realisation of a batch: what the cell capacity must hold. Counts as
+    :func:`candidate_pairs` does (a particle outside the domain in the border cell)."""
+    n_p = particles.pos.shape[-2]
+    pos = np.asarray(particles.pos, float).reshape(-1, n_p, 2)
+    active = np.asarray(particles.active).reshape(pos.shape[:2])
+    f = np.floor((pos - np.asarray(grid.origin, float)) / grid.cell_size)
+    f = np.where(np.isfinite(f), f, 0.0)
+    cx = np.clip(f[..., 0], 0, grid.nx - 1).astype(np.int64)
+    cy = np.clip(f[..., 1], 0, grid.ny - 1).astype(np.int64)
+    cell = cx + grid.nx * cy + grid.n_cells * np.arange(pos.shape[0])[:, None]
+    return int(np.bincount(cell[active], minlength=1).max())
 
 
 def _lex_search(old: Array, new: Array) -> Array:

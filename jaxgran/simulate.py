@@ -23,6 +23,7 @@ from jax import Array
 
 from .contact import pair_forces, wall_forces
 from .integrate import initial_forces, step
+from .partition import cell_count_max
 from .state import (
     ERR_CELL_OVERFLOW,
     ERR_LEFT_DOMAIN,
@@ -154,6 +155,44 @@ def pair_capacity_needed(contacts: Contacts) -> int:
     while new < need:
         new *= 2
     return new
+
+
+def cell_capacity_needed(grid: Grid, *states: SimState) -> int:
+    """Cell capacity to grow to after a cell overflow: doubled as often as it takes to hold
+    the fullest cell of ``states`` (the segment's start and the overflowing run's end;
+    :func:`jaxgran.partition.cell_count_max`), at least once. A cell that filled up only
+    in between is caught by the next try."""
+    need = max(cell_count_max(s.particles, grid) for s in states)
+    new = 2 * grid.cell_capacity
+    while new < need:
+        new *= 2
+    return new
+
+
+def grow_capacities(
+    start: SimState, overflowed: SimState, grid: Grid, err: int, regrows: list[str], batched=False
+) -> tuple[SimState, Grid]:
+    """``start`` and ``grid`` with the capacities that ``overflowed`` (the run from ``start``
+    that set the overflow bits ``err``) needed, in one regrowth each
+    (:func:`pair_capacity_needed`, :func:`cell_capacity_needed`); each change is logged in
+    ``regrows``. ``batched``: states with a leading realisation axis."""
+    if err & ERR_CELL_OVERFLOW:
+        new_cap = cell_capacity_needed(grid, start, overflowed)
+        msg = f"cell capacity {grid.cell_capacity} exceeded; grown to {new_cap}"
+        grid = dataclasses.replace(grid, cell_capacity=new_cap)
+        regrows.append(msg)
+        log.info(msg)
+    if err & ERR_PAIR_OVERFLOW:
+        c = start.contacts.pairs.shape[-2]
+        new_c = pair_capacity_needed(overflowed.contacts)
+        msg = f"pair capacity {c} exceeded; grown to {new_c}"
+        grow = lambda cts: grow_pairs(cts, new_c)  # noqa: E731
+        start = replace(
+            start, contacts=jax.vmap(grow)(start.contacts) if batched else grow(start.contacts)
+        )
+        regrows.append(msg)
+        log.info(msg)
+    return start, grid
 
 
 def _fatal(err: int, state: SimState) -> None:
@@ -299,7 +338,7 @@ def simulate(
                     raise SimulationError(f"capacity still exceeded after {tries} regrowths")
                 # the list fitted at the segment start, so padding it and repeating the
                 # segment reproduces exactly what an ample capacity would have given
-                start, grid = _grow(start, grid, err, regrows, pair_capacity_needed(new.contacts))
+                start, grid = grow_capacities(start, new, grid, err, regrows)
                 tries += 1
                 continue
             break
@@ -358,33 +397,12 @@ def simulate(
     )
 
 
-def _grow(
-    state: SimState, grid: Grid, err: int, regrows: list[str], new_pairs: int
-) -> tuple[SimState, Grid]:
-    """Double the cell capacity on a cell overflow; grow the pair capacity to ``new_pairs``
-    (:func:`pair_capacity_needed` of the overflowing run) on a pair overflow."""
-    if err & ERR_CELL_OVERFLOW:
-        new_cap = grid.cell_capacity * 2
-        msg = f"cell capacity {grid.cell_capacity} exceeded; grown to {new_cap}"
-        grid = dataclasses.replace(grid, cell_capacity=new_cap)
-        regrows.append(msg)
-        log.info(msg)
-    if err & ERR_PAIR_OVERFLOW:
-        c = state.contacts.pairs.shape[0]
-        new_c = int(new_pairs)
-        msg = f"pair capacity {c} exceeded; grown to {new_c}"
-        state = replace(state, contacts=grow_pairs(state.contacts, new_c))
-        regrows.append(msg)
-        log.info(msg)
-    return state, grid
-
-
 def _grow_until_ok(state, params, grid, err, regrows, max_regrows):
     tries = 0
     while err & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
         if tries >= max_regrows:
             raise SimulationError(f"capacity still exceeded after {tries} regrowths")
-        state, grid = _grow(state, grid, err, regrows, pair_capacity_needed(state.contacts))
+        state, grid = grow_capacities(state, state, grid, err, regrows)
         state, e = prepare(state, params, grid)
         err = int(e)
         tries += 1

@@ -11,9 +11,10 @@ import pytest
 from jaxgran import geometry as geo
 from jaxgran.contact import damping_from_restitution
 from jaxgran.integrate import stable_time_step
-from jaxgran.partition import make_grid
+from jaxgran.partition import candidate_pairs, cell_count_max, make_grid
 from jaxgran.simulate import SimulationError, simulate
 from jaxgran.state import (
+    ERR_CELL_OVERFLOW,
     box_walls,
     make_params,
     make_state,
@@ -86,8 +87,21 @@ def test_small_cell_capacity_grows(pile):
         records_per_segment=5,
         progress=False,
     )
-    assert any("cell capacity" in msg for msg in res.regrows)
-    assert res.grid.cell_capacity > 1
+    # one regrowth, straight to the doubling that holds the fullest cell
+    assert res.regrows == [f"cell capacity 1 exceeded; grown to {res.grid.cell_capacity}"]
+    need = max(cell_count_max(parts, grid), cell_count_max(res.state.particles, grid))
+    assert res.grid.cell_capacity // 2 < need <= res.grid.cell_capacity
+
+
+def test_cell_count_max_is_what_the_broad_phase_checks(pile):
+    """The host's count of the fullest cell (numpy) sets the cell-overflow bit of the
+    jitted broad phase exactly: a capacity one below it overflows, the count itself not."""
+    parts, _, params, grid = pile
+    need = cell_count_max(parts, grid)
+    assert need > 1
+    for cap in (need - 1, need):
+        _, err = candidate_pairs(parts, params.skin, dataclasses.replace(grid, cell_capacity=cap))
+        assert bool(int(err) & ERR_CELL_OVERFLOW) == (cap < need)
 
 
 def test_segments_do_not_recompile(pile):

@@ -55,7 +55,7 @@ from jax import Array
 from .. import bem
 from ..contact import pair_forces, wall_forces
 from ..geometry import polygon_area_padded
-from ..simulate import SimulationError, grow_pairs, pair_capacity_needed, prepare
+from ..simulate import SimulationError, grow_capacities, prepare
 from ..state import (
     ERR_CELL_OVERFLOW,
     ERR_LEFT_DOMAIN,
@@ -888,14 +888,10 @@ class DsmBreakage:
             err = int(err)
             if not err & (ERR_PAIR_OVERFLOW | ERR_CELL_OVERFLOW):
                 break
-            if err & ERR_PAIR_OVERFLOW:
-                c, new_c = state.contacts.pairs.shape[0], pair_capacity_needed(state.contacts)
-                state = replace(state, contacts=grow_pairs(state.contacts, new_c))
-                self._note(f"pair capacity {c} exceeded after breakage; grown to {new_c}")
-            if err & ERR_CELL_OVERFLOW:
-                cap = self.grid.cell_capacity
-                self.grid = dataclasses.replace(self.grid, cell_capacity=2 * cap)
-                self._note(f"cell capacity {cap} exceeded after breakage; grown to {2 * cap}")
+            grown: list[str] = []
+            state, self.grid = grow_capacities(state, state, self.grid, err, grown)
+            for msg in grown:
+                self._note(f"{msg} after breakage")
         else:
             raise SimulationError("capacity still exceeded after 8 regrowths after breakage")
         if err & (ERR_NAN | ERR_LEFT_DOMAIN):
