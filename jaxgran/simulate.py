@@ -149,12 +149,9 @@ def pair_capacity_needed(contacts: Contacts) -> int:
     overflow keeps the largest count found; the largest over the realisations of a batch),
     at least once. The capacities are those repeated doubling reaches, so compiled shapes
     are shared, in one regrowth (one compilation) instead of one per doubling."""
-    c = int(contacts.pairs.shape[-2])
-    need = int(np.max(np.asarray(contacts.n_pairs)))
-    new = 2 * c
-    while new < need:
-        new *= 2
-    return new
+    return _doubled_to_hold(
+        int(contacts.pairs.shape[-2]), int(np.max(np.asarray(contacts.n_pairs)))
+    )
 
 
 def cell_capacity_needed(grid: Grid, *states: SimState) -> int:
@@ -162,8 +159,14 @@ def cell_capacity_needed(grid: Grid, *states: SimState) -> int:
     the fullest cell of ``states`` (the segment's start and the overflowing run's end;
     :func:`jaxgran.partition.cell_count_max`), at least once. A cell that filled up only
     in between is caught by the next try."""
-    need = max(cell_count_max(s.particles, grid) for s in states)
-    new = 2 * grid.cell_capacity
+    return _doubled_to_hold(
+        grid.cell_capacity, max(cell_count_max(s.particles, grid) for s in states)
+    )
+
+
+def _doubled_to_hold(capacity: int, need: int) -> int:
+    """``capacity`` doubled at least once and until it is at least ``need``."""
+    new = 2 * capacity
     while new < need:
         new *= 2
     return new
@@ -186,7 +189,10 @@ def grow_capacities(
         c = start.contacts.pairs.shape[-2]
         new_c = pair_capacity_needed(overflowed.contacts)
         msg = f"pair capacity {c} exceeded; grown to {new_c}"
-        grow = lambda cts: grow_pairs(cts, new_c)  # noqa: E731
+
+        def grow(cts):
+            return grow_pairs(cts, new_c)
+
         start = replace(
             start, contacts=jax.vmap(grow)(start.contacts) if batched else grow(start.contacts)
         )
