@@ -402,7 +402,7 @@ def drive(
         ready, err = prep(state, grid)
         err_all = int(np.bitwise_or.reduce(np.atleast_1d(to_host(err))))
         if err_all & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW) and tries < max_regrows:
-            state, grid = grow_capacities(state, ready, grid, err_all, regrows, batched)
+            state, grid = grow_capacities(state, ready, grid, err_all, regrows)
             if mesh is not None and batched:
                 state = shard(state, mesh)
             tries += 1
@@ -436,7 +436,7 @@ def drive(
             if err_all & (ERR_CELL_OVERFLOW | ERR_PAIR_OVERFLOW):
                 if tries >= max_regrows:
                     raise SimulationError(f"capacity still exceeded after {tries} regrowths")
-                start, grid = grow_capacities(start, new, grid, err_all, regrows, batched)
+                start, grid = grow_capacities(start, new, grid, err_all, regrows)
                 if mesh is not None and batched:
                     start = shard(start, mesh)
                 tries += 1

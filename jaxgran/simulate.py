@@ -173,12 +173,12 @@ def _doubled_to_hold(capacity: int, need: int) -> int:
 
 
 def grow_capacities(
-    start: SimState, overflowed: SimState, grid: Grid, err: int, regrows: list[str], batched=False
+    start: SimState, overflowed: SimState, grid: Grid, err: int, regrows: list[str]
 ) -> tuple[SimState, Grid]:
     """``start`` and ``grid`` with the capacities that ``overflowed`` (the run from ``start``
     that set the overflow bits ``err``) needed, in one regrowth each
     (:func:`pair_capacity_needed`, :func:`cell_capacity_needed`); each change is logged in
-    ``regrows``. ``batched``: states with a leading realisation axis."""
+    ``regrows``. States may carry a leading realisation axis (an ensemble batch)."""
     if err & ERR_CELL_OVERFLOW:
         new_cap = cell_capacity_needed(grid, start, overflowed)
         msg = f"cell capacity {grid.cell_capacity} exceeded; grown to {new_cap}"
@@ -194,7 +194,10 @@ def grow_capacities(
             return grow_pairs(cts, new_c)
 
         start = replace(
-            start, contacts=jax.vmap(grow)(start.contacts) if batched else grow(start.contacts)
+            start,
+            contacts=jax.vmap(grow)(start.contacts)
+            if start.contacts.pairs.ndim == 3
+            else grow(start.contacts),
         )
         regrows.append(msg)
         log.info(msg)
