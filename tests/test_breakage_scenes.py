@@ -310,6 +310,5 @@ def test_compare_tallies_what_the_runs_did(quick_split, tmp_path):
 
 @pytest.mark.parametrize("floor", [-0.1, 1.5, float("nan")])
 def test_oedometer_rejects_a_bad_fragment_radius_floor_before_settling(floor):
-    cfg = dataclasses.replace(oc.Config(), fragment_radius_floor=floor)
     with pytest.raises(ValueError, match="fragment_radius_floor"):
-        oc.simulate_test(cfg)
+        oc.simulate_test(dataclasses.replace(oc.Config(), fragment_radius_floor=floor))

@@ -54,12 +54,13 @@ from ..integrate import servo_gain_for
 from ..state import WALL_FIXED, WALL_SERVO, WALL_VELOCITY, box_walls, replace
 from . import bonded as bd
 from .base import write_outputs
+from .limits import Checked
 
 SCENE = "bonded-biaxial"
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     width: float = 0.04  # m, W
     height: float = 0.08  # m, H
     n_cells: int = 200

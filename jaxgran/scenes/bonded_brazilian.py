@@ -37,12 +37,13 @@ from .. import ensemble as ens
 from ..state import WALL_VELOCITY, wall
 from . import bonded as bd
 from .base import write_outputs
+from .limits import Checked
 
 SCENE = "bonded-brazilian"
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     diameter: float = 0.10  # m, D
     n_cells: int = 800  # Voronoi cells
     seed: int = 0  # Voronoi seed of realisation 0 (realisation k uses seed + k)
@@ -115,8 +116,6 @@ def build(cfg: Config, seeds: list[int] | None = None, materials=None) -> Setup:
         seeds = seeds * len(mats)
     if len(seeds) != len(mats):
         raise ValueError("give one material per seed (or one seed for a sweep)")
-    if not cfg.strain_rate > 0:
-        raise ValueError("strain_rate must be > 0 1/s")
     nb = n_boundary_for(cfg.n_cells)
     cache: dict[int, bd.Specimen] = {}
     for s in seeds:

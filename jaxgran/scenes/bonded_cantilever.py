@@ -43,12 +43,13 @@ from ..state import replace
 from . import bonded as bd
 from . import bonded_biaxial as bx
 from .base import write_outputs
+from .limits import Checked
 
 SCENE = "bonded-cantilever"
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     length: float = 0.30  # m, L
     depth: float = 0.05  # m, s
     n_cells: int = 400

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
@@ -56,12 +57,15 @@ from ..state import (
     wall,
 )
 from .base import write_outputs
+from .limits import Checked, Range, require_less
 
 __all__ = ["Config", "QUICK", "build", "calibrate_eps", "run", "simulate_test"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
+    LIMITS: ClassVar[dict] = {"n_elements": Range(8, integer=True, note="BEM elements")}
+
     disc_radius: float = 0.01  # m, R: outer radius of the grain (core circumradius + r)
     n_vertices: int = 32  # core polygon vertices (>= 32 for a disc-like grain)
     sphero_radius: float = 1.0e-3  # m, r
@@ -87,6 +91,9 @@ class Config:
     screen_fraction: float = 0.5
     min_area_fraction: float = 1.0e-3  # fragments below this x the grain area become fines
     load_model: str = "flamant"  # BEM contact load model
+
+    def relations(self) -> None:
+        require_less(self, "sphero_radius", "disc_radius")
 
 
 QUICK = {
@@ -117,8 +124,6 @@ def build(cfg: Config, rotation: float = 0.0):
     ``rotation`` (rad) turns the grain about its centre (0: a vertex at each pole)."""
     if cfg.n_vertices < 3 or cfg.n_vertices % 2:
         raise ValueError("n_vertices must be even (a vertex at each pole) and >= 4")
-    if not 0 < cfg.sphero_radius < cfg.disc_radius:
-        raise ValueError("sphero_radius must lie in (0, disc_radius)")
     r = cfg.sphero_radius
     core = geo.regular_polygon(cfg.n_vertices, cfg.disc_radius - r, math.pi / 2 + rotation)
     parts = particles_from_polygons(

@@ -29,6 +29,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
@@ -43,6 +44,7 @@ from ..partition import make_grid
 from ..simulate import prepare
 from ..state import make_params, make_state, make_walls, particles_from_polygons, replace, wall
 from .base import environment
+from .limits import Checked, OneOf, Range, require_less
 
 __all__ = ["CONFIGURATIONS", "Config", "QUICK", "build", "load_test", "run"]
 
@@ -59,7 +61,12 @@ CONFIGURATIONS: dict[str, tuple[tuple[float, float, float | None], ...]] = {
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
+    LIMITS: ClassVar[dict] = {
+        "n_elements": Range(8, integer=True, note="BEM elements"),
+        "configurations": OneOf(tuple(CONFIGURATIONS), many=True),
+    }
+
     disc_radius: float = 0.01  # m, outer radius R of the grain
     n_vertices: int = 36  # core vertices (a vertex every 10 degrees)
     sphero_radius: float = 1.0e-3  # m
@@ -77,6 +84,10 @@ class Config:
     min_area_fraction: float = 1.0e-3  # fragments below this x the grain area are fines
     configurations: str = "N2,N3,N4"
     methods: str = "dsm,split-cell,cross-cut,mohr-coulomb"
+
+    def relations(self) -> None:
+        require_less(self, "sphero_radius", "disc_radius")
+        require_less(self, "start_fraction", "max_fraction")
 
 
 QUICK = {"n_points": 200, "ramp": 1.08, "start_fraction": 0.5}

@@ -27,10 +27,11 @@ from ..state import (
     replace,
 )
 from .base import contact_params, write_outputs
+from .limits import Checked, require_less
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     n_cells: int = 500  # Voronoi cells generated (particles kept after the size filter)
     box_width: float = 0.50  # m
     cell_size: float = 0.022  # m, mean circumdiameter of the tessellation's cells
@@ -57,6 +58,10 @@ class Config:
     seed: int = 0
     lloyd_iterations: int = 3
     thickness: float = 0.01  # m, out of plane (used for stresses only)
+
+    def relations(self) -> None:
+        require_less(self, "min_diameter", "max_diameter")
+        require_less(self, "min_time", "max_time")
 
 
 QUICK = {"n_cells": 60, "box_width": 0.16, "normal_stiffness": 6.0e4, "max_time": 2.0}

@@ -46,6 +46,7 @@ import dataclasses
 import math
 import time as _time
 import warnings
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -57,6 +58,7 @@ from ..bonds import attach_to_walls
 from ..contact import damping_from_restitution
 from ..state import SimState, make_params, make_state, make_walls, particles_from_polygons, replace
 from . import bonded as bd
+from .limits import COUNT_OR_AUTO, Checked
 
 # ------------------------------------------------------------------------------ material
 
@@ -98,9 +100,11 @@ class Material:
 
 
 @dataclasses.dataclass(frozen=True)
-class Common:
+class Common(Checked):
     """Fields every interface scene's ``Config`` shares (SI units); ``bond`` picks the model
     (``--set bond=parallel`` for the baseline), ``particles`` the specimen kind."""
+
+    LIMITS: ClassVar[dict] = {"n_cells": COUNT_OR_AUTO}
 
     bond: str = "interface"  # "interface" (paper 003) or "parallel" (baseline)
     particles: str = "discs"  # "discs" (elementary balls) or "voronoi"
@@ -134,6 +138,13 @@ class Common:
     contact_friction: float = 0.5
     wall_friction: float = math.nan  # platens / walls (nan: contact_friction)
     restitution: float = 0.3
+
+    def relations(self) -> None:
+        if not self.d_min <= self.d_max:
+            raise ValueError(
+                f"settings d_min={self.d_min!r} and d_max={self.d_max!r}: "
+                "d_min must not exceed d_max"
+            )
 
 
 def material_from(cfg) -> Material:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
@@ -53,12 +54,15 @@ from ..state import (
     wall,
 )
 from .base import contact_params, finished_summary, write_outputs
+from .limits import Checked, Range, require_less
 
 __all__ = ["Config", "QUICK", "build", "run", "simulate_test", "summarize"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
+    LIMITS: ClassVar[dict] = {"n_elements": Range(8, integer=True, note="BEM elements")}
+
     method: str = "dsm"  # dsm, split-cell, cross-cut, mohr-coulomb
     n_particles: int = 24
     box_width: float = 0.10  # m
@@ -121,6 +125,9 @@ class Config:
     # grow it; a larger V makes every contact step dearer (V x V features per pair)
     vertex_capacity: int = 0
     seed: int = 0
+
+    def relations(self) -> None:
+        require_less(self, "min_diameter", "max_diameter")
 
 
 QUICK = {
@@ -187,8 +194,6 @@ def pentagons(cfg: Config) -> list[np.ndarray]:
 def build(cfg: Config):
     """Initial state (grains in the air, bar parked above them), parameters and grid."""
     cores = pentagons(cfg)
-    if cfg.capacity_factor < 1.0:
-        raise ValueError(f"capacity_factor must be >= 1, got {cfg.capacity_factor}")
     parts = particles_from_polygons(
         cores,
         cfg.sphero_radius,
@@ -526,9 +531,7 @@ def checkpoint_progress(path) -> dict:
 
 def _min_radius(cfg) -> float | None:
     """Floor (m) of the fragments' adaptive sphero-radius, None when they keep the parent's."""
-    f = float(getattr(cfg, "fragment_radius_floor", 0.0))
-    if not (math.isfinite(f) and 0.0 <= f <= 1.0):
-        raise ValueError(f"fragment_radius_floor must be in [0, 1], got {f}")
+    f = float(getattr(cfg, "fragment_radius_floor", 0.0))  # [0, 1]: Config checks it
     return None if f == 0.0 else f * cfg.sphero_radius
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
@@ -38,12 +39,15 @@ from ..state import (
 )
 from . import oedometer_cantor as oc
 from .base import contact_params, finished_summary, write_outputs
+from .limits import Checked, Range
 
 __all__ = ["Config", "QUICK", "build", "run"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
+    LIMITS: ClassVar[dict] = {"n_elements": Range(8, integer=True, note="BEM elements")}
+
     method: str = "dsm"  # dsm, split-cell, cross-cut, mohr-coulomb
     n_cells: int = 600
     box_width: float = 1.37  # m (paper 000 §IV.B)
@@ -120,8 +124,6 @@ def cells(cfg: Config) -> list[np.ndarray]:
 
 def build(cfg: Config):
     """Initial state (cells in the air, bar parked above), parameters and grid."""
-    if cfg.capacity_factor < 1.0:
-        raise ValueError(f"capacity_factor must be >= 1, got {cfg.capacity_factor}")
     cores = cells(cfg)
     parts = particles_from_polygons(
         cores,
