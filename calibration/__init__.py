@@ -1,11 +1,7 @@
-"""Calibration of bonded-Voronoi micro-parameters against measured macro-properties
-(``python -m calibration.fit``; :mod:`calibration.twin` for a synthetic-twin check)."""
+"""Calibration of bonded-Voronoi micro-parameters against measured macro-properties:
+:mod:`calibration.fit` (run it as ``python -m calibration.fit``), :mod:`calibration.twin`
+for a synthetic-twin check and :mod:`calibration.plots`.
 
-from .fit import GROUPS as GROUPS
-from .fit import Problem as Problem
-from .fit import Target as Target
-from .fit import adam as adam
-from .fit import make_problem as make_problem
-from .fit import nelder_mead as nelder_mead
-from .fit import parameters_from_groups as parameters_from_groups
-from .fit import uncertainty as uncertainty
+The package imports none of them itself: ``python -m calibration.fit`` would otherwise find
+``calibration.fit`` already imported when it starts it as ``__main__`` (runpy warns about
+two copies of the module)."""

@@ -56,6 +56,7 @@ import argparse
 import dataclasses
 import json
 import math
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -133,21 +134,111 @@ class Target:
         return self.name if self.p is None else f"{self.name}@p={self.p:.4g}"
 
 
+def _number(where: str, entry: dict, key: str, positive: bool = False) -> float:
+    if key not in entry:
+        raise ValueError(f"{where}: {key!r} is missing")
+    v = entry[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"{where}: {key} must be a finite number, got {v!r}")
+    if positive and not v > 0:
+        raise ValueError(f"{where}: {key} must be > 0, got {v!r}")
+    return float(v)
+
+
 def parse_targets(spec: dict) -> list[Target]:
+    """Targets from the ``targets`` object of a spec (module docstring): per figure one
+    ``{"value", "uncertainty"}`` entry, or for q_peak a list of them with ``p`` (Pa).
+    Values are finite, uncertainties and p > 0, every figure but nu > 0 (by definition);
+    ValueError names the entry otherwise."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"targets must be an object of figures, got {type(spec).__name__}")
     out = []
     for name, entry in spec.items():
         if name not in FIGURE_SCENE:
             raise ValueError(f"unknown target {name!r}; known: {sorted(FIGURE_SCENE)}")
         for e in entry if isinstance(entry, list) else [entry]:
-            t = Target(name, float(e["value"]), float(e["uncertainty"]), e.get("p"))
-            if not t.uncertainty > 0:
-                raise ValueError(f"target {t.label}: uncertainty must be > 0")
-            if name == "q_peak" and t.p is None:
+            if not isinstance(e, dict):
+                raise ValueError(f"target {name}: expected an object, got {e!r}")
+            keys = {"value", "uncertainty"} | ({"p"} if name == "q_peak" else set())
+            extra = sorted(set(e) - keys)
+            if extra:
+                raise ValueError(f"target {name}: unknown key(s) {extra}; expected {sorted(keys)}")
+            if name == "q_peak" and "p" not in e:
                 raise ValueError("a q_peak target needs the mean stress p (Pa) it was measured at")
+            p = _number(f"target {name}", e, "p", positive=True) if "p" in e else None
+            t = Target(
+                name,
+                _number(f"target {name}", e, "value", positive=name != "nu"),
+                _number(f"target {name}", e, "uncertainty", positive=True),
+                p,
+            )
             out.append(t)
     if not out:
         raise ValueError("no targets given")
     return out
+
+
+SPEC_KEYS = ("targets", "initial", "free", "seeds", "surrogate_width", "adam") + SCENES
+
+
+def check_spec(spec: dict, scenes: Sequence[str], realisations: int) -> list[Target]:
+    """Check a calibration spec (module docstring) before anything is built: known keys
+    (``_``-prefixed ones are comments), the targets (:func:`parse_targets`), positive
+    initial groups, free groups, enough non-negative integer seeds, the scene options (the
+    scene's ``Config`` checks its own settings; lab options must be arguments of the lab
+    builder) and the Adam options. Returns the targets; ValueError says what is wrong."""
+    import inspect
+
+    from jaxgran import labtests as lt
+
+    if not isinstance(spec, dict):
+        raise ValueError("the targets file must hold a JSON object")
+    unknown = [k for k in spec if k not in SPEC_KEYS and not k.startswith("_")]
+    if unknown:
+        raise ValueError(f"unknown key(s) {unknown} in the spec; known: {list(SPEC_KEYS)}")
+    targets = parse_targets(spec.get("targets", {}))
+    for g, v in (spec.get("initial") or {}).items():
+        if g not in GROUPS:
+            raise ValueError(f"initial: unknown group {g!r}; groups: {list(GROUPS)}")
+        _number("initial", {g: v}, g, positive=True)
+    if spec.get("initial"):
+        groups_from_values(spec["initial"])  # all groups given
+    bad = [g for g in spec.get("free", []) if g not in GROUPS]
+    if bad:
+        raise ValueError(f"unknown free groups {bad}; choose from {list(GROUPS)}")
+    if not (isinstance(realisations, int) and realisations >= 1):
+        raise ValueError(f"realisations must be an integer >= 1, got {realisations!r}")
+    seeds = spec.get("seeds") or list(range(realisations))
+    if not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
+        raise ValueError(f"seeds must be non-negative integers, got {seeds!r}")
+    if len(seeds) < realisations:
+        raise ValueError(f"{realisations} realisations asked but only {len(seeds)} seeds given")
+    if "surrogate_width" in spec:
+        _number("spec", spec, "surrogate_width")
+        if spec["surrogate_width"] < 0:
+            raise ValueError("surrogate_width must be >= 0 (0: hard breakage)")
+    builders = {"bonded-brazilian": lt.brazilian_lab, "bonded-biaxial": lt.biaxial_lab}
+    for scene in scenes:
+        if scene not in SCENES:
+            raise ValueError(f"unknown scene {scene!r}; calibration knows {list(SCENES)}")
+        options = spec.get(scene, {})
+        if not isinstance(options, dict):
+            raise ValueError(f"{scene}: options must be an object")
+        lab_args = set(inspect.signature(builders[scene]).parameters) - {"cfg", "seeds"}
+        extra = sorted(set(options.get("lab", {})) - lab_args)
+        if extra:
+            raise ValueError(f"{scene} lab: unknown option(s) {extra}; known: {sorted(lab_args)}")
+        try:
+            _scene_config(scene, options)
+        except TypeError as exc:  # a key that is no setting of the scene
+            raise ValueError(f"{scene}: {exc}") from None
+    adam_opts = spec.get("adam", {})
+    extra = sorted(set(adam_opts) - {"learning_rate", "steps", "tol"})
+    if extra:
+        raise ValueError(f"adam: unknown option(s) {extra}; known: learning_rate, steps, tol")
+    for key in adam_opts:
+        _number("adam", adam_opts, key, positive=True)
+    return targets
 
 
 @dataclasses.dataclass
@@ -622,8 +713,9 @@ def format_table(rows: list[dict]) -> str:
 def make_problem(
     spec: dict, scenes: list[str], realisations: int, seeds=None, peak_from_targets: bool = True
 ) -> Problem:
-    """A :class:`Problem` from a targets spec (module docstring)."""
-    targets = parse_targets(spec["targets"])
+    """A :class:`Problem` from a targets spec (module docstring), checked first
+    (:func:`check_spec`)."""
+    targets = check_spec(spec, scenes, realisations)
     initial = spec.get("initial") or {
         "K_n": 1.0e8,
         "K_n/K_t": 1.0,
@@ -633,9 +725,6 @@ def make_problem(
         "mu": 0.3,
     }
     free = spec.get("free", ["K_n", "B_n/B_t", "eps_th"])
-    bad = [g for g in free if g not in GROUPS]
-    if bad:
-        raise ValueError(f"unknown free groups {bad}; choose from {list(GROUPS)}")
     if seeds is None:
         seeds = spec.get("seeds") or list(range(realisations))
     seeds = list(seeds)[:realisations]
@@ -697,7 +786,12 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", not args.float32)
-    spec = json.loads(args.targets.read_text())
+    try:
+        spec = json.loads(args.targets.read_text())
+        check_spec(spec, args.scene, args.realisations)
+    except (OSError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
+        print(f"error: {args.targets}: {exc}", file=sys.stderr)
+        return 2
     return run(spec, args.scene, args.realisations, args.out, args)
 
 

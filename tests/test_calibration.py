@@ -77,6 +77,48 @@ def test_bad_targets_are_refused():
         fit.parse_targets({"strength": {"value": 1.0, "uncertainty": 0.1}})
     with pytest.raises(ValueError, match="needs the mean stress"):
         fit.parse_targets({"q_peak": [{"value": 1.0, "uncertainty": 0.1}]})
+    for entry, message in [
+        ({"value": -1.0, "uncertainty": 0.1}, "value must be > 0"),
+        ({"value": 1.0, "uncertainty": 0.0}, "uncertainty must be > 0"),
+        ({"value": 1.0, "sigma": 0.1}, r"unknown key\(s\) \['sigma'\]"),
+        ({"value": "1e8", "uncertainty": 0.1}, "value must be a finite number"),
+        ({"value": float("nan"), "uncertainty": 0.1}, "value must be a finite number"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            fit.parse_targets({"sigma_t": entry})
+    assert fit.parse_targets({"nu": {"value": -0.1, "uncertainty": 0.1}})[0].value == -0.1
+
+
+def test_a_bad_spec_is_refused_before_anything_is_built(tmp_path, capsys):
+    """Every part of a spec is checked up front (seconds, not the minutes of building and
+    compiling the labs), and the script says what is wrong instead of a traceback."""
+    good = {"targets": {"sigma_t": {"value": 1.0e8, "uncertainty": 1.0e6}}}
+    assert fit.check_spec(good, ["bonded-brazilian"], 2)[0].name == "sigma_t"
+    bad = [
+        ({"targts": {}}, r"unknown key\(s\) \['targts'\]"),
+        ({"initial": {"K_n": -1.0}}, "K_n must be > 0"),
+        ({"initial": {"K_n": 1.0e8}}, "initial values missing"),
+        ({"free": ["K_t"]}, "unknown free groups"),
+        ({"seeds": [0, -1]}, "non-negative integers"),
+        ({"seeds": [0]}, "2 realisations asked but only 1 seeds"),
+        ({"surrogate_width": -1.0}, "surrogate_width must be >= 0"),
+        ({"bonded-brazilian": {"n_cells": 1}}, "setting n_cells=1 is refused"),
+        ({"bonded-brazilian": {"ncells": 30}}, "unexpected keyword argument 'ncells'"),
+        ({"bonded-brazilian": {"lab": {"dampng": 1.0}}}, r"unknown option\(s\) \['dampng'\]"),
+        ({"adam": {"steps": 0}}, "steps must be > 0"),
+    ]
+    for change, message in bad:
+        with pytest.raises(ValueError, match=message):
+            fit.check_spec(good | change, ["bonded-brazilian"], 2)
+    path = tmp_path / "targets.json"
+    path.write_text('{"targets": {"sigma_t": {"value": 1e8}}}')
+    args = ["--targets", str(path), "--scene", "bonded-brazilian", "--out", str(tmp_path)]
+    assert fit.main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "'uncertainty' is missing" in err
+    path.write_text("not json")
+    assert fit.main(args) == 2
+    assert "Expecting value" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")
