@@ -171,7 +171,11 @@ def _plot(args) -> int:
     if not args.path.exists():
         print(f"error: {args.path} does not exist", file=sys.stderr)
         return 2
-    run = io.read_run(args.path)
+    try:
+        run = io.read_run(args.path)
+    except (OSError, ValueError, KeyError) as exc:  # not a run file, or a truncated one
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     out = args.out or args.path.parent
     for p in plot.plot_run(run, out):
         print(p)

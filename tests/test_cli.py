@@ -62,10 +62,16 @@ def test_plot_command_redraws(deposit_run, tmp_path):
     assert (tmp_path / "packing.png").exists()
 
 
-def test_bad_setting_is_refused(capsys):
+def test_bad_setting_is_refused(capsys, tmp_path):
     assert main(["run", "deposit", "--set", "no_such_key=1"]) == 2
     assert "valid settings" in capsys.readouterr().err
     assert main(["run", "no-such-scene"]) == 2
+    not_a_run = tmp_path / "notes.h5"
+    not_a_run.write_text("not HDF5")
+    capsys.readouterr()
+    assert main(["plot", str(not_a_run)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "is not an HDF5 file" in err
 
 
 def test_resume_is_refused_where_a_scene_has_no_checkpoints(capsys):
