@@ -157,6 +157,27 @@ def test_nan_in_the_state_stops_the_run_with_advice(pile):
         )
 
 
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"n_steps": 0},
+        {"n_steps": -5},
+        {"n_steps": 10.5},
+        {"record_every": 0},
+        {"records_per_segment": 0},
+        {"frame_every": 0},
+        {"checkpoint_every_s": 0.0},
+    ],
+)
+def test_bad_run_lengths_are_refused_before_anything_runs(bad):
+    """A zero segment length used to divide by zero and a non-positive n_steps ran one
+    segment silently."""
+    parts, walls, params, grid = _pile()
+    args = {"n_steps": 100, "progress": False} | bad
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        simulate(make_state(parts, walls, pair_capacity=64), params, grid, **args)
+
+
 def test_escaping_particle_is_reported(pile):
     parts, walls, params, grid = pile
     # a particle above the pile flying up out of the domain (grid top at y = 0.13 m)

@@ -171,7 +171,7 @@ SETTINGS: dict[str, Rule] = {
     "max_time": POSITIVE,
     "min_time": NON_NEGATIVE,
     "ke_stop_ratio": FRACTION,
-    "settle_time": NON_NEGATIVE,
+    "settle_time": POSITIVE,
     "settle_ke_ratio": FRACTION,
     "record_every": COUNT,
     "records_per_segment": COUNT,
