@@ -78,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
 
     sub.add_parser("info", help="versions, devices, precision")
     sub.add_parser("scenes", help="list the scenes")
+    set_p = sub.add_parser(
+        "settings", help="a scene's settings: default, allowed values, units and meaning"
+    )
+    set_p.add_argument("scene", help="scene name (see `jaxgran scenes`)")
 
     args = parser.parse_args(argv)
     if args.command == "run":
@@ -92,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         return _progress(args.path)
     if args.command == "info":
         return _info()
+    if args.command == "settings":
+        return _settings(args.scene)
     if args.command == "scenes":
         from .scenes import SCENES
 
@@ -221,6 +227,24 @@ def _calibrate(args) -> int:
         bem_check=not args.no_bem,
     )
     print(json.dumps(report, indent=2, default=float))
+    return 0
+
+
+def _settings(scene: str) -> int:
+    from .scenes import SCENES
+    from .scenes.limits import describe_settings
+
+    if scene not in SCENES:
+        print(f"unknown scene {scene!r}; available: {', '.join(SCENES)}", file=sys.stderr)
+        return 2
+    rows = describe_settings(SCENES[scene].Config)
+    width = {k: max(len(k), *(len(r[k]) for r in rows)) for k in ("name", "default")}
+    print(f"{'name':<{width['name']}}  {'default':<{width['default']}}  allowed; meaning")
+    for r in rows:
+        meaning = f"; {r['meaning']}" if r["meaning"] else ""
+        head = f"{r['name']:<{width['name']}}  {r['default']:<{width['default']}}"
+        print(f"{head}  {r['allowed']}{meaning}")
+    print(f"\nset any of them with: jaxgran run {scene} --set NAME=VALUE")
     return 0
 
 

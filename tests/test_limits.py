@@ -12,7 +12,8 @@ from jaxgran.cli import main
 from jaxgran.scenes import SCENES
 from jaxgran.scenes import deposit as dp
 from jaxgran.scenes import interface_tension as it
-from jaxgran.scenes.limits import OneOf, Range, rule_for
+from jaxgran.scenes import oedometer_cantor as oc
+from jaxgran.scenes.limits import OneOf, Range, describe_settings, rule_for
 
 CONFIGS = {name: mod.Config for name, mod in SCENES.items()}
 
@@ -98,7 +99,7 @@ def test_a_list_setting_is_checked_entry_by_entry():
     from jaxgran.scenes import bonded_biaxial as bx
 
     assert bx.Config(p_values=(50e6, 1e8)).p_values == (50e6, 1e8)
-    with pytest.raises(ValueError, match=r"setting p_values=\(50000000.0, -1.0\)"):
+    with pytest.raises(ValueError, match=r"p_values=\(50000000.0, -1.0\) is refused: every entry"):
         bx.Config(p_values=(50e6, -1.0))
 
 
@@ -119,3 +120,31 @@ def test_the_command_line_reports_a_refused_value(capsys, scene, setting, messag
     err = capsys.readouterr().err
     assert err.startswith("error: setting ") and message in err
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("scene", sorted(CONFIGS))
+def test_settings_are_described_with_their_rule_and_comment(scene):
+    cls = CONFIGS[scene]
+    rows = describe_settings(cls)
+    assert [r["name"] for r in rows] == [f.name for f in dataclasses.fields(cls)]
+    assert all(r["allowed"] for r in rows)
+    # most settings carry a comment with units or meaning in the source
+    assert sum(bool(r["meaning"]) for r in rows) >= len(rows) // 2
+
+
+def test_comments_are_read_from_the_line_and_the_lines_above():
+    rows = {r["name"]: r for r in describe_settings(oc.Config)}
+    assert rows["normal_stiffness"]["meaning"] == "N/m, Table I"
+    assert rows["sphero_radius"]["meaning"].startswith("m; paper 000 does not give it.")
+    assert rows["snapshot_times"]["allowed"] == "a list, each a number >= 0"
+    assert rows["conserve_mass"]["allowed"] == "true or false"
+    inherited = {r["name"]: r for r in describe_settings(it.Config)}
+    assert inherited["d_min"]["meaning"] == "m, smallest elementary disc diameter"  # from Common
+
+
+def test_the_settings_command_lists_a_scene(capsys):
+    assert main(["settings", "deposit"]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("normal_stiffness "))
+    assert "600000.0" in line and "a number > 0" in line and "N/m, Table I" in line
+    assert main(["settings", "no-such-scene"]) == 2

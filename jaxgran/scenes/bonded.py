@@ -60,14 +60,17 @@ from ..state import (
     particles_from_polygons,
     replace,
 )
+from .limits import Checked
 
 # wall order of jaxgran.state.box_walls
 BOTTOM, LEFT, RIGHT, TOP = 0, 1, 2, 3
 
 
 @dataclasses.dataclass(frozen=True)
-class Material:
-    """Micro-parameters of a bonded Voronoi solid (paper 002 Table 1 with T = 1 cm)."""
+class Material(Checked):
+    """Micro-parameters of a bonded Voronoi solid (paper 002 Table 1 with T = 1 cm). Every
+    bonded scene's ``Config`` starts with these settings (it derives from this class), and
+    they are checked when made (:mod:`jaxgran.scenes.limits`)."""
 
     thickness: float = 0.01  # m, T (plane stress slab)
     areal_density: float = 27.0  # kg/m^2 (2700 kg/m^3 x T; not in Table 1)
@@ -82,13 +85,6 @@ class Material:
     eps_th: float = 0.02  # Eq. 15 strain threshold
     theta_th: float = 0.05  # rad, Eq. 15 rotation threshold
     sphero_fraction: float = 0.05  # r = this x mean cell size sqrt(area / n_cells)
-
-    def check(self) -> None:
-        for name in ("thickness", "areal_density", "normal_stiffness", "eps_th", "theta_th"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"material {name} must be > 0, got {getattr(self, name)}")
-        if not 0 < self.sphero_fraction < 0.3:
-            raise ValueError("sphero_fraction must lie in (0, 0.3) of the mean cell size")
 
 
 def material_from(cfg) -> Material:
@@ -128,7 +124,6 @@ class Specimen:
 def specimen_from_cells(cells: list[np.ndarray], area: float, material: Material) -> Specimen:
     """Specimen of a tessellation ``cells`` (m) covering ``area`` (m^2): each cell eroded by
     ``sphero_fraction x sqrt(area / n)``."""
-    material.check()
     r = material.sphero_fraction * math.sqrt(area / len(cells))
     cores = []
     for k, c in enumerate(cells):

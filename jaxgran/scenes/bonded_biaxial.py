@@ -54,13 +54,15 @@ from ..integrate import servo_gain_for
 from ..state import WALL_FIXED, WALL_SERVO, WALL_VELOCITY, box_walls, replace
 from . import bonded as bd
 from .base import write_outputs
-from .limits import Checked
 
 SCENE = "bonded-biaxial"
 
 
 @dataclasses.dataclass(frozen=True)
-class Config(Checked):
+class Config(bd.Material):
+    """Scene settings after the material ones of :class:`jaxgran.scenes.bonded.Material`
+    (paper 002 Table 1, SI units)."""
+
     width: float = 0.04  # m, W
     height: float = 0.08  # m, H
     n_cells: int = 200
@@ -86,20 +88,6 @@ class Config(Checked):
     skin_fraction: float = 0.1
     record_every: int = 50
     records_per_segment: int = 10
-    # material (paper 002 Table 1 with T = 1 cm)
-    thickness: float = 0.01
-    areal_density: float = 27.0
-    normal_stiffness: float = 1.0e8
-    tangential_stiffness: float = 1.0e8
-    normal_damping: float = 2529.8
-    tangential_damping: float = 0.0
-    friction: float = 0.3
-    b_n: float = 20.0e9
-    b_t: float = 20.0e9
-    b_m: float = 3.3e9
-    eps_th: float = 0.02
-    theta_th: float = 0.05
-    sphero_fraction: float = 0.05
 
 
 QUICK = {"n_cells": 60, "p_values": (150.0e6, 300.0e6), "max_strain": 0.03, "strain_rate": 40.0}

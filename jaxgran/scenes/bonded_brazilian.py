@@ -37,13 +37,15 @@ from .. import ensemble as ens
 from ..state import WALL_VELOCITY, wall
 from . import bonded as bd
 from .base import write_outputs
-from .limits import Checked
 
 SCENE = "bonded-brazilian"
 
 
 @dataclasses.dataclass(frozen=True)
-class Config(Checked):
+class Config(bd.Material):
+    """Scene settings after the material ones of :class:`jaxgran.scenes.bonded.Material`
+    (paper 002 Table 1, SI units)."""
+
     diameter: float = 0.10  # m, D
     n_cells: int = 800  # Voronoi cells
     seed: int = 0  # Voronoi seed of realisation 0 (realisation k uses seed + k)
@@ -56,20 +58,6 @@ class Config(Checked):
     skin_fraction: float = 0.1  # Verlet skin / mean cell size
     record_every: int = 100  # steps per record (also the burst window)
     records_per_segment: int = 10
-    # material (paper 002 Table 1 with T = 1 cm; see jaxgran.scenes.bonded)
-    thickness: float = 0.01  # m, T
-    areal_density: float = 27.0  # kg/m^2
-    normal_stiffness: float = 1.0e8  # N/m, K_n
-    tangential_stiffness: float = 1.0e8  # N/m, K_t
-    normal_damping: float = 2529.8  # 1/s, G_n
-    tangential_damping: float = 0.0  # 1/s, G_t
-    friction: float = 0.3  # mu
-    b_n: float = 20.0e9  # Pa
-    b_t: float = 20.0e9  # Pa
-    b_m: float = 3.3e9  # Pa
-    eps_th: float = 0.02
-    theta_th: float = 0.05  # rad
-    sphero_fraction: float = 0.05  # sphero-radius / mean cell size
 
 
 QUICK = {"n_cells": 150, "record_every": 50}

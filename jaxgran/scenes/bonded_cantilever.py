@@ -43,13 +43,15 @@ from ..state import replace
 from . import bonded as bd
 from . import bonded_biaxial as bx
 from .base import write_outputs
-from .limits import Checked
 
 SCENE = "bonded-cantilever"
 
 
 @dataclasses.dataclass(frozen=True)
-class Config(Checked):
+class Config(bd.Material):
+    """Scene settings after the material ones of :class:`jaxgran.scenes.bonded.Material`
+    (paper 002 Table 1, SI units)."""
+
     length: float = 0.30  # m, L
     depth: float = 0.05  # m, s
     n_cells: int = 400
@@ -73,20 +75,6 @@ class Config(Checked):
     skin_fraction: float = 0.1
     record_every: int = 100
     records_per_segment: int = 10
-    # material (paper 002 Table 1 with T = 1 cm)
-    thickness: float = 0.01
-    areal_density: float = 27.0
-    normal_stiffness: float = 1.0e8
-    tangential_stiffness: float = 1.0e8
-    normal_damping: float = 2529.8
-    tangential_damping: float = 0.0
-    friction: float = 0.3
-    b_n: float = 20.0e9
-    b_t: float = 20.0e9
-    b_m: float = 3.3e9
-    eps_th: float = 0.02
-    theta_th: float = 0.05
-    sphero_fraction: float = 0.05
 
 
 QUICK = {"length": 0.15, "depth": 0.03, "n_cells": 90, "clamp_length": 0.015, "tip_length": 0.015}

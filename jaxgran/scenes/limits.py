@@ -17,8 +17,11 @@ rule, so a new setting cannot go unchecked.
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import io
 import math
 import numbers
+import tokenize
 from typing import Any, ClassVar
 
 from ..bem import _LOAD_MODELS
@@ -254,7 +257,8 @@ def check(cfg: Any) -> None:
         if rule is None:
             raise ValueError(f"setting {f.name} has no rule in jaxgran.scenes.limits")
         if not rule.allows(value):
-            raise ValueError(f"setting {f.name}={value!r} is refused: it must be {rule.describe()}")
+            what = "every entry must be" if isinstance(value, tuple) else "it must be"
+            raise ValueError(f"setting {f.name}={value!r} is refused: {what} {rule.describe()}")
     relations = getattr(cfg, "relations", None)
     if relations is not None:
         relations()
@@ -279,3 +283,58 @@ def require_less(cfg: Any, low: str, high: str) -> None:
     a, b = getattr(cfg, low), getattr(cfg, high)
     if not a < b:
         raise ValueError(f"settings {low}={a!r} and {high}={b!r}: {low} must be below {high}")
+
+
+def _field_comments(cls) -> dict[str, str]:
+    """The comments of the fields of a dataclass and of its dataclass bases, read from the
+    source: the text after ``#`` on a field's line, after the comment lines just above it."""
+    out: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass) or klass is object:
+            continue
+        try:
+            src = inspect.getsource(klass)
+        except (OSError, TypeError):  # no source (e.g. a frozen application)
+            continue
+        above: list[str] = []
+        lines: dict[int, str] = {}
+        for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+            if tok.type == tokenize.COMMENT:
+                lines[tok.start[0]] = tok.string.lstrip("#").strip()
+        for k, line in enumerate(src.splitlines(), start=1):
+            code = line.split("#", 1)[0].strip()
+            if not code:  # a comment line (or blank): kept for the next field
+                above = above + [lines[k]] if k in lines else []
+                continue
+            name = code.split(":", 1)[0].strip()
+            if ":" in code and name.isidentifier() and not code.startswith(("def ", "class ")):
+                text = " ".join(above + ([lines[k]] if k in lines else []))
+                if text:
+                    out[name] = text
+            above = []
+    return out
+
+
+def describe_settings(cls) -> list[dict[str, str]]:
+    """One row per setting of the scene configuration class ``cls``: ``name``, ``default``,
+    ``allowed`` (the rule, :func:`check`) and ``meaning`` (the field's comment in the
+    source: units, paper references, special values)."""
+    cfg = cls()
+    comments = _field_comments(cls)
+    rows = []
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if isinstance(value, bool):
+            allowed = "true or false"
+        else:
+            allowed = rule_for(cfg, f.name).describe()
+            allowed = f"a list, each {allowed}" if isinstance(value, tuple) else allowed
+        rows.append(
+            {
+                "name": f.name,
+                "default": repr(value),
+                "allowed": allowed,
+                "meaning": comments.get(f.name, ""),
+            }
+        )
+    return rows
