@@ -77,8 +77,8 @@ from .geometry import polygon_area_padded, polygon_centroid_padded, validate_pol
 Plane = Literal["stress", "strain"]
 LoadModel = Literal["flamant", "element"]
 
-_PLANES = ("stress", "strain")
-_LOAD_MODELS = ("flamant", "element")
+PLANES = ("stress", "strain")
+LOAD_MODELS = ("flamant", "element")
 _TWO_PI = 2.0 * math.pi
 # Sample points stay this many (largest) element lengths inside the boundary (PHYSICS A2:
 # errors are 0.1-0.2 % beyond 1.3 h, several % at 0.6 h).
@@ -791,12 +791,12 @@ def equivalent_stress(sigma: ArrayLike, poisson_ratio: float | jax.Array, plane:
 
 
 def _check_plane(plane) -> None:
-    if plane not in _PLANES:
+    if plane not in PLANES:
         raise ValueError(f"plane must be 'stress' or 'strain', got {plane!r}")
 
 
 def _check_load_model(load_model) -> None:
-    if load_model not in _LOAD_MODELS:
+    if load_model not in LOAD_MODELS:
         raise ValueError(f"load_model must be 'flamant' or 'element', got {load_model!r}")
 
 

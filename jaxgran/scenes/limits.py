@@ -24,7 +24,7 @@ import numbers
 import tokenize
 from typing import Any, ClassVar
 
-from ..bem import _LOAD_MODELS
+from ..bem import LOAD_MODELS, PLANES
 from ..breakage.averaged import METHODS
 from ..breakage.replace import EROSION_MODES, SMALL_PIECE_MODES
 from ..interface import ENVELOPES
@@ -220,8 +220,8 @@ SETTINGS: dict[str, Rule] = {
     "target_force": POSITIVE,
     "calibration_force": POSITIVE,
     "eps": Range(0.0, note="0: calibrated from the Brazilian force"),
-    "plane": OneOf(("stress", "strain")),
-    "load_model": OneOf(_LOAD_MODELS),
+    "plane": OneOf(PLANES),
+    "load_model": OneOf(LOAD_MODELS),
     "n_vertices": Range(4, integer=True),
     "n_points": COUNT,
     "screen": OneOf(("bound", "force")),
