@@ -64,7 +64,7 @@ from .limits import COUNT_OR_AUTO, Checked
 
 
 @dataclasses.dataclass(frozen=True)
-class Material:
+class Material(Checked):
     """Gypsum-like interface-bond material (module docstring); SI units."""
 
     bond: str = "interface"  # "interface" (paper 003) or "parallel" (baseline)
@@ -84,15 +84,6 @@ class Material:
     wall_friction: float = math.nan  # particle-wall (platen) mu; nan: contact_friction
     restitution: float = 0.3  # contact dashpots
 
-    def check(self) -> None:
-        if self.bond not in itf.ENVELOPES:
-            raise ValueError(f"bond must be one of {sorted(itf.ENVELOPES)}, got {self.bond!r}")
-        for name in ("thickness", "density", "modulus", "stiffness_ratio", "tensile_strength"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"material {name} must be > 0, got {getattr(self, name)}")
-        if not self.wall_friction >= 0 and not math.isnan(self.wall_friction):
-            raise ValueError(f"wall_friction must be >= 0 (or nan), got {self.wall_friction}")
-
     @property
     def contact_stiffness(self) -> float:
         """K_n of the contact law (N/m): ``E_c T``, about one interface's normal stiffness."""
@@ -100,13 +91,13 @@ class Material:
 
 
 @dataclasses.dataclass(frozen=True)
-class Common(Checked):
-    """Fields every interface scene's ``Config`` shares (SI units); ``bond`` picks the model
-    (``--set bond=parallel`` for the baseline), ``particles`` the specimen kind."""
+class Common(Material):
+    """Fields every interface scene's ``Config`` shares (SI units): the :class:`Material`
+    ones (``bond`` picks the model, ``--set bond=parallel`` for the baseline), then the
+    specimen (``particles`` its kind) and the loading."""
 
     LIMITS: ClassVar[dict] = {"n_cells": COUNT_OR_AUTO}
 
-    bond: str = "interface"  # "interface" (paper 003) or "parallel" (baseline)
     particles: str = "discs"  # "discs" (elementary balls) or "voronoi"
     seed: int = 0
     d_min: float = 2.5e-3  # m, smallest elementary disc diameter
@@ -122,22 +113,6 @@ class Common(Checked):
     dt_safety: float = 0.5
     record_every: int = 50
     records_per_segment: int = 10
-    # material (gypsum-like, module jaxgran.scenes.interface)
-    thickness: float = 0.01  # m
-    density: float = 2300.0  # kg/m^3
-    modulus: float = 8.0e9  # Pa, E_c
-    stiffness_ratio: float = 2.5  # k_n / k_s
-    tensile_strength: float = 10.0e6  # Pa, sigma_b
-    cohesion: float = 30.0e6  # Pa, c
-    friction_angle_deg: float = 41.0  # parallel bond
-    residual_friction: float = 0.5  # mu_b
-    compressive_strain: float = math.inf  # eps_u (inf: off)
-    n_elements: int = 4
-    radius_multiplier: float = 1.5
-    damping_ratio: float = 0.3
-    contact_friction: float = 0.5
-    wall_friction: float = math.nan  # platens / walls (nan: contact_friction)
-    restitution: float = 0.3
 
     def relations(self) -> None:
         if not self.d_min <= self.d_max:
@@ -384,7 +359,6 @@ def assemble(
     """State of a bonded specimen at rest between ``walls`` (descriptions from
     :func:`jaxgran.state.wall`); the walls in ``bond_walls`` are tied to the particles within
     ``wall_bond_distance`` (m) of them by normal wall bonds of modulus ``E_c``."""
-    mat.check()
     parts = particles_from_polygons(
         spec.cores, spec.radius, mat.density * mat.thickness, dtype=dtype
     )
