@@ -318,8 +318,8 @@ def simulate(
     for name, value in counts.items():
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise ValueError(f"simulate: {name} must be an integer >= 1, got {value!r}")
-    if not checkpoint_every_s > 0:
-        raise ValueError(f"simulate: checkpoint_every_s must be > 0, got {checkpoint_every_s!r}")
+    if not checkpoint_every_s >= 0:  # 0: a checkpoint after every segment
+        raise ValueError(f"simulate: checkpoint_every_s must be >= 0, got {checkpoint_every_s!r}")
     seg_steps = record_every * records_per_segment
     n_seg = max(1, -(-int(n_steps) // seg_steps))
     t0 = _time.perf_counter()

@@ -166,7 +166,8 @@ def test_nan_in_the_state_stops_the_run_with_advice(pile):
         {"record_every": 0},
         {"records_per_segment": 0},
         {"frame_every": 0},
-        {"checkpoint_every_s": 0.0},
+        {"checkpoint_every_s": -1.0},
+        {"checkpoint_every_s": float("nan")},
     ],
 )
 def test_bad_run_lengths_are_refused_before_anything_runs(bad):
