@@ -65,13 +65,13 @@ class Config(bd.Material):
 
     width: float = 0.04  # m, W
     height: float = 0.08  # m, H
-    n_cells: int = 200
+    n_cells: int = 200  # Voronoi cells of the block
     seed: int = 0
     realisations: int = 1  # Voronoi seeds per test, run under jax.vmap
     lloyd_iterations: int = 2
     p_values: tuple = (100.0e6, 200.0e6, 300.0e6, 400.0e6)  # Pa, constant-p shearing tests
-    unconfined: bool = True
-    tension: bool = True
+    unconfined: bool = True  # also unconfined compression: E_c, nu, UCS (Eq. 24-25)
+    tension: bool = True  # also direct tension (walls bonded to the block): E_t
     strain_rate: float = 20.0  # 1/s, axial (both walls together / H)
     max_strain: float = 0.04  # axial strain at the end of shearing
     residual_fraction: float = 0.2  # last part of the shearing that gives the residual q

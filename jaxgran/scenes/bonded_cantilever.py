@@ -54,7 +54,7 @@ class Config(bd.Material):
 
     length: float = 0.30  # m, L
     depth: float = 0.05  # m, s
-    n_cells: int = 400
+    n_cells: int = 400  # Voronoi cells of the beam
     seed: int = 0  # Voronoi seed of realisation 0 (realisation k uses seed + k)
     realisations: int = 1  # K > 1: K beams under jax.vmap, mean +- std reported
     lloyd_iterations: int = 2

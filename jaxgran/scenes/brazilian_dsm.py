@@ -88,7 +88,7 @@ class Config(Checked):
     max_force_ratio: float = 1.5  # give up when the load exceeds this x the prediction
     n_elements: int = 128  # BEM elements
     n_points: int = 400  # BEM sample points
-    screen_fraction: float = 0.5
+    screen_fraction: float = 0.5  # BEM only once a contact force reaches this x the critical load
     min_area_fraction: float = 1.0e-3  # fragments below this x the grain area become fines
     load_model: str = "flamant"  # BEM contact load model
 

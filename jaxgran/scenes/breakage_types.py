@@ -74,7 +74,7 @@ class Config(Checked):
     areal_density: float = 12.0  # kg/m^2, Table I
     calibration_force: float = 150.79  # N, Brazilian breaking force (paper 000 §III)
     normal_stiffness: float = 2.0e7  # N/m (stiff: small overlaps, small erosion)
-    poisson_ratio: float = 0.3
+    poisson_ratio: float = 0.3  # of the grain, for the BEM (paper 000 Table I)
     start_fraction: float = 0.3  # first load: this x the Brazilian critical load (largest F)
     ramp: float = 1.03  # load factor ratio between two checks
     max_fraction: float = 20.0  # give up above this x the Brazilian critical load
@@ -82,8 +82,8 @@ class Config(Checked):
     n_points: int = 300  # DSM BEM sample points
     wall_half_width: float = 5.0e-4  # m, each loading wall touches one vertex only
     min_area_fraction: float = 1.0e-3  # fragments below this x the grain area are fines
-    configurations: str = "N2,N3,N4"
-    methods: str = "dsm,split-cell,cross-cut,mohr-coulomb"
+    configurations: str = "N2,N3,N4"  # paper 000 Fig. 12 load cases (CONFIGURATIONS)
+    methods: str = "dsm,split-cell,cross-cut,mohr-coulomb"  # breakage methods compared
 
     def relations(self) -> None:
         require_less(self, "sphero_radius", "disc_radius")

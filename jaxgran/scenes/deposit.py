@@ -51,7 +51,7 @@ class Config(Checked):
     dt_safety: float = 0.25  # x the two-body limit: stable with up to ~4 K_n on one body
     skin: float = 2.0e-3  # m, Table I Verlet distance
     max_time: float = 1.5  # s
-    ke_stop_ratio: float = 1.0e-6
+    ke_stop_ratio: float = 1.0e-6  # settled once the kinetic energy is below this x its peak
     min_time: float = 0.1  # s, never stop before this (the pour must start)
     record_every: int = 200
     records_per_segment: int = 10

@@ -77,7 +77,7 @@ class Material(Checked):
     friction_angle_deg: float = 41.0  # phi of the parallel bond's line (deg)
     residual_friction: float = 0.5  # mu_b after failure
     compressive_strain: float = math.inf  # eps_u; inf = off (paper 003's default)
-    n_elements: int = 4
+    n_elements: int = 4  # interface elements per bond (paper 003: 16 sectors in 3D)
     radius_multiplier: float = 1.5  # lambda: disc interface width 2 lambda min(r)
     damping_ratio: float = 0.3  # element dashpots (zeta)
     contact_friction: float = 0.5  # particle-particle and particle-plate mu

@@ -74,8 +74,8 @@ class Config(si.Common):
     servo_integral: float = 4.0
     side_friction: float = 0.0  # side walls (the membrane: frictionless)
     post_peak_strain: float = 0.005  # stop once q stays below drop_fraction x peak this long
-    with_tension: bool = True
-    with_uniaxial: bool = True
+    with_tension: bool = True  # also direct tension of the same specimen (a circle)
+    with_uniaxial: bool = True  # also unconfined compression (a circle)
 
 
 QUICK = {

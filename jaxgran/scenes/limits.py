@@ -315,10 +315,21 @@ def _field_comments(cls) -> dict[str, str]:
     return out
 
 
+#: What the settings every scene has mean, for those whose field carries no comment.
+MEANINGS: dict[str, str] = {
+    "record_every": "steps between two records of the time series",
+    "records_per_segment": "records per compiled segment (host checks between segments)",
+    "seed": "random seed of the specimen (Voronoi seeds, packing)",
+    "dt_safety": "time step as a fraction of the stable one",
+    "lloyd_iterations": "Lloyd relaxation sweeps of the Voronoi seeds",
+    "skin_fraction": "Verlet skin / mean cell size",
+}
+
+
 def describe_settings(cls) -> list[dict[str, str]]:
     """One row per setting of the scene configuration class ``cls``: ``name``, ``default``,
     ``allowed`` (the rule, :func:`check`) and ``meaning`` (the field's comment in the
-    source: units, paper references, special values)."""
+    source: units, paper references, special values; else :data:`MEANINGS`)."""
     cfg = cls()
     comments = _field_comments(cls)
     rows = []
@@ -334,7 +345,7 @@ def describe_settings(cls) -> list[dict[str, str]]:
                 "name": f.name,
                 "default": repr(value),
                 "allowed": allowed,
-                "meaning": comments.get(f.name, ""),
+                "meaning": comments.get(f.name, MEANINGS.get(f.name, "")),
             }
         )
     return rows

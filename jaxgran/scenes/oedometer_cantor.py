@@ -64,7 +64,7 @@ class Config(Checked):
     LIMITS: ClassVar[dict] = {"n_elements": Range(8, integer=True, note="BEM elements")}
 
     method: str = "dsm"  # dsm, split-cell, cross-cut, mohr-coulomb
-    n_particles: int = 24
+    n_particles: int = 24  # pentagons in the pile
     box_width: float = 0.10  # m
     box_height: float = 0.09  # m, container height (the bar starts at the pile top)
     min_diameter: float = 0.01  # m, circumdiameter range of the pentagons

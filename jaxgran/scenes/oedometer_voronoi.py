@@ -49,7 +49,7 @@ class Config(Checked):
     LIMITS: ClassVar[dict] = {"n_elements": Range(8, integer=True, note="BEM elements")}
 
     method: str = "dsm"  # dsm, split-cell, cross-cut, mohr-coulomb
-    n_cells: int = 600
+    n_cells: int = 600  # Voronoi cells tessellating the fill region
     box_width: float = 1.37  # m (paper 000 §IV.B)
     fill_height: float = 1.10  # m, tessellated height (the packing is ~110 cm high)
     sphero_radius: float = 2.0e-3  # m
@@ -61,24 +61,24 @@ class Config(Checked):
     tangential_stiffness: float = 2.2e4  # N/m, Table I
     friction: float = 0.4  # paper 000 §IV.B
     areal_density: float = 12.0  # kg/m^2, Table I
-    poisson_ratio: float = 0.3
+    poisson_ratio: float = 0.3  # of the grains, for the BEM (Table I)
     thickness: float = 0.01  # m
-    restitution: float = 0.3
+    restitution: float = 0.3  # sets G_n, G_t (not in Table I)
     skin: float = 2.0e-3  # m, Table I
     calibration_force: float = 150.79  # N (paper 000 §III)
     calibration_radius: float = 0.01  # m
-    min_fragment_fraction: float = 0.05
+    min_fragment_fraction: float = 0.05  # lighter pieces (x mean mass): see small_pieces
     dt_safety: float = 0.15  # see oedometer_cantor.Config.dt_safety
     settle_time: float = 1.5  # s
-    settle_ke_ratio: float = 1.0e-4
+    settle_ke_ratio: float = 1.0e-4  # settled when KE < this x its peak
     bar_gap: float = 1.0e-3  # m
     bar_speed: float = 1.0e-3  # m/s (paper: v_y = -1 mm/s)
     load_time: float = 10.0  # s
-    snapshot_times: tuple = (0.0, 2.5, 5.0, 7.0, 10.0)
+    snapshot_times: tuple = (0.0, 2.5, 5.0, 7.0, 10.0)  # s after loading starts
     record_every: int = 200
     records_per_segment: int = 10
-    n_elements: int = 64
-    n_points: int = 200
+    n_elements: int = 64  # DSM BEM elements
+    n_points: int = 200  # DSM BEM sample points
     screen: str = "bound"  # DSM screening: bound (proven) or force (heuristic)
     erosion: str = "local"  # fragments' erosion: local, local-axis, uniform, none
     small_pieces: str = "merge"  # pieces below min_fragment_fraction: merge or fines
