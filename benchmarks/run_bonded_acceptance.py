@@ -9,6 +9,7 @@ so the analysis and the figures can be redone without simulating (``--analyse-on
     python benchmarks/run_bonded_acceptance.py brazilian    # sigma_t over 8 seeds, bursts
     python benchmarks/run_bonded_acceptance.py sweep        # sigma_t/B_n, S/K_n calibration
     python benchmarks/run_bonded_acceptance.py p-drift --seed 2 --pressures 100e6  # p vs rate
+    python benchmarks/run_bonded_acceptance.py p-drift --rates 10 --servo-max-speed 50  # cap
 
 Results go to ``<out>/<part>.json`` (default ``benchmarks/bonded_acceptance``), figures to
 ``docs/`` (``hoek_brown.png``, ``cantilever.png``, ``bursts.png``, ``bonded_sweeps.png``).
@@ -457,6 +458,9 @@ def p_drift(args) -> dict:
     response = float(args.servo_response) or bx.Config().servo_response
     if args.servo_response:
         tag += f"_tau{response:g}"
+    cap = float(args.servo_max_speed) or bx.Config().servo_max_speed
+    if args.servo_max_speed:
+        tag += f"_cap{cap:g}"
     path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}{tag}.json"
     rows = json.loads(path.read_text())["runs"] if path.exists() else []
     done = {r["strain_rate"] for r in rows}
@@ -466,6 +470,7 @@ def p_drift(args) -> dict:
         cfg = dataclasses.replace(
             bx.Config(), n_cells=args.cells, strain_rate=rate, max_strain=args.max_strain,
             record_every=args.record_every, servo_integral=ti, servo_response=response,
+            servo_max_speed=cap,
         )  # fmt: skip
         t0 = time.perf_counter()
         shear, iso, setup, _ = bx.isotropic_then_shear(cfg, [seed], (p,))
@@ -475,6 +480,7 @@ def p_drift(args) -> dict:
             {"strain_rate": rate, "wall_time_s": time.perf_counter() - t0,
              "steps": shear.steps + iso.steps,
              "p_max_relative_deviation_to_peak": m["p_max_relative_deviation_to_peak"],
+             "p_max_relative_deviation": m["p_max_relative_deviation"],
              **{k: m[k] for k in keys}}
         )  # fmt: skip
         print(json.dumps(rows[-1], default=float), flush=True)
@@ -522,6 +528,12 @@ def main() -> None:
         type=float,
         default=math.inf,
         help="p-drift: servo integral time in loop time constants (default inf: proportional)",
+    )
+    ap.add_argument(
+        "--servo-max-speed",
+        type=float,
+        default=0.0,
+        help="p-drift: servo walls' speed cap, x strain rate x height (default: the scene's)",
     )
     args = ap.parse_args()
     args.cells = args.cells or {"brazilian": 500}.get(args.part, 200)

@@ -211,6 +211,14 @@ def test_biaxial_holds_p_constant_while_shearing():
     assert e1[-1] == pytest.approx(cfg.max_strain, rel=0.1)
 
 
+def test_servo_speed_cap_is_a_setting():
+    cfg = dataclasses.replace(bx.Config(), servo_max_speed=50.0, strain_rate=10.0)
+    walls = bx._walls(cfg, bd.material_from(cfg), 100.0e6)
+    assert [w["max_speed"] for w in walls] == [50.0 * 10.0 * cfg.height] * 4
+    default = bx._walls(bx.Config(), bd.material_from(bx.Config()), 100.0e6)
+    assert default[0]["max_speed"] == 2.0 * bx.Config().strain_rate * bx.Config().height
+
+
 def test_euler_bernoulli_cantilever_formula():
     f, a, e, i = 100.0, 0.2, 1.0e10, 1.0e-8
     x = np.linspace(0.0, 0.3, 301)

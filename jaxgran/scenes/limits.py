@@ -198,6 +198,7 @@ SETTINGS: dict[str, Rule] = {
     "iso_max_time": POSITIVE,
     "servo_response": POSITIVE,
     "servo_integral": Range(0.0, low_open=True, note="inf: proportional servo alone"),
+    "servo_max_speed": POSITIVE,
     "p_values": POSITIVE,
     "confinements": POSITIVE,
     "band_fraction": Range(0.0, 0.5, low_open=True, high_open=True),
