@@ -242,7 +242,8 @@ SETTINGS: dict[str, Rule] = {
 
 def rule_for(cfg: Any, name: str) -> Rule | None:
     """The rule of setting ``name`` of ``cfg``: the scene's ``LIMITS`` first, then
-    :data:`SETTINGS`; None for a bool (any bool is allowed) or an unknown name."""
+    :data:`SETTINGS`; None where there is none (bool settings need none: any bool is
+    allowed)."""
     limits = getattr(type(cfg), "LIMITS", {})
     return limits.get(name, SETTINGS.get(name))
 
