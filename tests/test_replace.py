@@ -649,6 +649,9 @@ def test_fitting_the_vertex_capacity_changes_no_number():
     fit = fit_vertex_capacity(state)
     assert fit.particles.verts.shape[1] == 4 and fit.contacts.xi.shape[-1] == 4
     assert fit_vertex_capacity(fit) is fit  # nothing left to cut
+    # a configured floor keeps spare slots: 5 of the 8, and none cut at 8 or more
+    assert fit_vertex_capacity(state, minimum=5).particles.verts.shape[1] == 5
+    assert fit_vertex_capacity(state, minimum=8) is state
     runs = [run_segment(s, params, grid, 2, 50) for s in (state, fit)]
     assert all(int(err) == 0 for _, _, err in runs)
     (a, _, _), (b, _, _) = runs

@@ -685,8 +685,10 @@ def _resize(name: str, a: np.ndarray, n_p: int, n_v: int) -> np.ndarray:
     return a
 
 
-def fit_vertex_capacity(state: SimState) -> SimState:
-    """The state with its vertex axis cut to the most vertices an active particle has.
+def fit_vertex_capacity(state: SimState, minimum: int = 3) -> SimState:
+    """The state with its vertex axis cut to the most vertices an active particle has, or to
+    ``minimum`` if that is more (a run that starts with spare vertex slots, so that its
+    fragments fit without a recompilation, keeps them).
 
     A numerical no-op: the cut entries are padding (copies of each particle's last vertex,
     and tangential histories of vertex slots that no particle has, always zero); the pair
@@ -698,7 +700,7 @@ def fit_vertex_capacity(state: SimState) -> SimState:
     p, c = state.particles, state.contacts
     n_v = p.verts.shape[1]
     active = np.asarray(p.active)
-    need = max(3, int(np.asarray(p.n_verts)[active].max()) if active.any() else 3)
+    need = max(3, minimum, int(np.asarray(p.n_verts)[active].max()) if active.any() else 3)
     if need >= n_v:
         return state
     if np.any(np.asarray(c.xi)[..., need:]) or np.any(np.asarray(c.wall_xi)[..., need:]):

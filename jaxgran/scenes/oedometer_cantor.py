@@ -271,10 +271,14 @@ def simulate_test(
     else:
         settle, ctx, s0 = saved["settle"], saved["context"], None
         # a checkpoint of a run whose vertex capacity grew by a factor (before exact growth)
-        # steps at the capacity its particles need: a numerical no-op (fit_vertex_capacity)
+        # steps at the capacity its particles need, but no lower than the configured start,
+        # so that a resumed run has the uninterrupted run's shapes (and compilations): a
+        # numerical no-op (fit_vertex_capacity)
         from ..breakage.replace import fit_vertex_capacity
 
-        saved["simulate"]["state"] = fit_vertex_capacity(saved["simulate"]["state"])
+        saved["simulate"]["state"] = fit_vertex_capacity(
+            saved["simulate"]["state"], minimum=getattr(cfg, "vertex_capacity", 0)
+        )
     brk, t0, m_mean = ctx["brk"], ctx["t0"], ctx["m_mean"]
 
     def step_callback(s, rec):
