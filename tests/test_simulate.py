@@ -151,9 +151,15 @@ def test_nan_in_the_state_stops_the_run_with_advice(pile):
         make_state(bad, walls)
     state = make_state(parts, walls, pair_capacity=400)
     state = replace(state, particles=replace(state.particles, vel=bad.vel))
-    with pytest.raises(SimulationError, match="NaN"):
+    with pytest.raises(SimulationError, match="NaN"):  # the fixture runs' segment layout
         simulate(
-            state, params, grid, n_steps=100, record_every=50, records_per_segment=2, progress=False
+            state,
+            params,
+            grid,
+            n_steps=500,
+            record_every=100,
+            records_per_segment=5,
+            progress=False,
         )
 
 
@@ -189,13 +195,13 @@ def test_escaping_particle_is_reported(pile):
     )
     state = make_state(fast, walls, pair_capacity=400)
     with pytest.raises(SimulationError, match="left the simulation domain"):
-        simulate(
+        simulate(  # the fixture runs' segment layout: their compiled segment serves
             state,
             params,
             grid,
             n_steps=20_000,
-            record_every=500,
-            records_per_segment=10,
+            record_every=100,
+            records_per_segment=5,
             progress=False,
         )
 
