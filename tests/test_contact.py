@@ -21,8 +21,10 @@ def _forces(polys, radius=1e-3, params=None, perm=None):
     params = params or make_params(gravity=(0.0, 0.0), friction=0.5, dt=1e-6)
     parts = particles_from_polygons(polys, radius, 12.0, vertex_capacity=8)
     state = make_state(parts, make_walls([]), pair_capacity=64)
-    lo = np.min([np.min(p, axis=0) for p in polys], axis=0) - 0.1
-    hi = np.max([np.max(p, axis=0) for p in polys], axis=0) + 0.1
+    # one domain for every scene that fits in it: the grid's origin and cell size are static
+    # (a moved domain recompiles), so scenes of equal particle sizes share one compilation
+    lo = np.minimum(np.min([np.min(p, axis=0) for p in polys], axis=0) - 0.1, -0.5)
+    hi = np.maximum(np.max([np.max(p, axis=0) for p in polys], axis=0) + 0.1, 0.5)
     grid = make_grid(tuple(lo), tuple(hi), float(jnp.max(parts.bound_radius)), 2e-3)
     state, err = prepare(state, params, grid)
     assert int(err) == 0
