@@ -60,17 +60,26 @@ def packing(n: int, dtype, seed: int = 0):
     return state, params, grid
 
 
-def bench(n: int, dtype_name: str, steps: int, repeats: int) -> dict:
-    import jax
+def prepared(n: int, dtype_name: str):
+    """:func:`packing` with its pair list built and capacities grown: (state, params, grid)."""
     import jax.numpy as jnp
 
-    from jaxgran.simulate import _grow_until_ok, prepare, run_segment
+    from jaxgran.simulate import _grow_until_ok, prepare
 
     dtype = jnp.float32 if dtype_name == "float32" else jnp.float64
     state, params, grid = packing(n, dtype)
     state, err = prepare(state, params, grid)
     state, grid, err = _grow_until_ok(state, params, grid, int(err), [], 8)
     assert err == 0, err
+    return state, params, grid
+
+
+def bench(n: int, dtype_name: str, steps: int, repeats: int) -> dict:
+    import jax
+
+    from jaxgran.simulate import run_segment
+
+    state, params, grid = prepared(n, dtype_name)
     out = run_segment(state, params, grid, 1, steps)  # compile
     jax.block_until_ready(out)
     times = []

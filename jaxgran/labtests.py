@@ -133,7 +133,7 @@ class Lab(eqx.Module):
         controls: loading control ``[K, ...]`` of the (main) stage.
         params: shared :class:`Params`: dt, skin, damping, thickness; K_n, K_t and mu are
             replaced by the parameters at each call.
-        grid: broad-phase grid (static).
+        grid: broad-phase grid (its shape static, its origin and cell size values).
         real_bond: ``[K, B]`` bool, real particle-particle bonds.
         ref: per realisation reference length ``[K]`` (m): the initial platen gap
             (brazilian) or the block height (biaxial).
@@ -158,7 +158,7 @@ class Lab(eqx.Module):
     state: SimState
     controls: bd.Control
     params: Params
-    grid: Grid = eqx.field(static=True)
+    grid: Grid
     real_bond: Array
     ref: Array
     gauge0: Array

@@ -32,7 +32,7 @@ from .state import (
 def cell_coordinates(pos: Array, grid: Grid) -> tuple[Array, Array, Array]:
     """Integer cell coordinates ``[P]`` x2 (clamped) and an in-domain mask ``[P]``."""
     origin = jnp.asarray(grid.origin, dtype=pos.dtype)
-    f = jnp.floor((pos - origin) / grid.cell_size)
+    f = jnp.floor((pos - origin) / jnp.asarray(grid.cell_size, dtype=pos.dtype))
     inside = (f[:, 0] >= 0) & (f[:, 0] < grid.nx) & (f[:, 1] >= 0) & (f[:, 1] < grid.ny)
     f = jnp.where(jnp.isfinite(f), f, 0.0)
     cx = jnp.clip(f[:, 0], 0, grid.nx - 1).astype(jnp.int32)

@@ -14,8 +14,6 @@ position.
 
 from __future__ import annotations
 
-import dataclasses
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -258,24 +256,46 @@ def make_params(
     )
 
 
-@dataclasses.dataclass(frozen=True)
-class Grid:
-    """Static broad-phase configuration (changing it recompiles).
+def _as_origin(x) -> np.ndarray:
+    a = np.asarray(x, dtype=float)
+    if a.shape != (2,):
+        raise ValueError(f"grid origin must be two numbers (x, y) in m, got {x!r}")
+    return a
 
-    The domain ``[origin, origin + cell_size * (nx, ny)]`` is divided into square cells of side
-    ``cell_size`` >= the largest bounding diameter plus the skin; ``cell_capacity`` particles
-    fit in a cell. A particle outside the domain raises ``ERR_LEFT_DOMAIN``.
+
+def _as_scalar(x) -> np.ndarray:
+    return np.asarray(x, dtype=float).reshape(())
+
+
+class Grid(eqx.Module):
+    """Broad-phase configuration.
+
+    The domain ``[origin, origin + cell_size * (nx, ny)]`` (m) is divided into square cells of
+    side ``cell_size`` >= the largest bounding diameter plus the skin; ``cell_capacity``
+    particles fit in a cell. A particle outside the domain raises ``ERR_LEFT_DOMAIN``.
+
+    ``origin`` ``[2]`` and ``cell_size`` (0-d) are values (float64 numpy arrays, leaves of the
+    pytree): moving or rescaling the grid reuses the compiled code. ``nx``, ``ny`` and
+    ``cell_capacity`` fix array shapes, so they are static: changing them recompiles.
     """
 
-    origin: tuple[float, float]
-    cell_size: float
-    nx: int
-    ny: int
-    cell_capacity: int
+    origin: np.ndarray = eqx.field(converter=_as_origin)
+    cell_size: np.ndarray = eqx.field(converter=_as_scalar)
+    nx: int = eqx.field(static=True)
+    ny: int = eqx.field(static=True)
+    cell_capacity: int = eqx.field(static=True)
 
     @property
     def n_cells(self) -> int:
         return self.nx * self.ny
+
+    def __setstate__(self, state: dict) -> None:
+        # checkpoints written before the grid became a pytree hold a plain tuple and float
+        state = dict(state)
+        state["origin"] = _as_origin(state["origin"])
+        state["cell_size"] = _as_scalar(state["cell_size"])
+        for k, v in state.items():
+            object.__setattr__(self, k, v)
 
 
 class EnergyLedger(eqx.Module):
