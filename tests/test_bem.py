@@ -641,7 +641,11 @@ def test_psi_bound_bounds_the_field(batch):
     bound = jax.jit(lambda o, c, f, m: bem.psi_bound(o, c, f, m, thickness=0.01))
     ratios = []
     for seed in range(200):
+        # 1-6 loaded contacts, padded to 6 slots (masked, zero force): one compilation
         cp, cf, mask = random_loads(ops, 1 + seed % 6, seed)
+        pad = ((0, 0), (0, 6 - mask.shape[1]))
+        cp = np.pad(cp, pad + ((0, 0),), mode="edge")
+        cf, mask = np.pad(cf, pad + ((0, 0),)), np.pad(mask, pad)
         psi, b = np.asarray(field(ops, cp, cf, mask)), np.asarray(bound(ops, cp, cf, mask))
         assert b[-1] == 0.0 and psi[-1] == 0.0
         assert np.all(b[:-1] >= psi[:-1]), seed
