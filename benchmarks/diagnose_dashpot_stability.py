@@ -1,0 +1,126 @@
+"""Does a settled deposit stay at rest? The energy ledger of a resting pile, at the scene's
+time step and at smaller ones.
+
+A deposit (``jaxgran.scenes.deposit``, the quick configuration by default) is poured until it
+settles; from the settled state the same stretch of simulated time (``--hold`` s) is run with
+the energy ledger attached, at ``dt``, ``dt / 2`` and ``dt / 4``, once with the scene's
+dashpots and once without them. A pile at rest takes almost no work from gravity, so the
+dashpot and friction terms it books must be almost zero and the balance residual must stay
+at round-off. Reported per run: kinetic energy at the end, the ledger's terms, the residual,
+and the largest change of a grain's contact force from one step to the next (a force that
+flips every step is an oscillation at the Nyquist frequency of the scheme, which no physical
+mode of the pile has).
+
+    python benchmarks/diagnose_dashpot_stability.py            # quick deposit, ~2 min
+    python benchmarks/diagnose_dashpot_stability.py --full     # the default deposit
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from machine import cpu_name  # noqa: E402
+
+OUT = Path(__file__).resolve().parent / "DASHPOT_STABILITY_RESULTS.md"
+
+
+def hold(state, params, grid, n_steps: int) -> dict:
+    """Run ``n_steps`` from ``state`` with the ledger; the balance and the force flips."""
+    import jax
+    import numpy as np
+
+    from jaxgran import energy
+    from jaxgran.integrate import step
+
+    one = jax.jit(lambda s: step(s, params, grid))
+    s = energy.attach(state, params, grid)
+    flip = 0.0
+    prev = np.asarray(s.particles.force)
+    for _ in range(n_steps):
+        s, err = one(s)
+        assert int(err) == 0, int(err)
+        f = np.asarray(s.particles.force)
+        flip = max(flip, float(np.abs(f - prev).max()))
+        prev = f
+    b = energy.balance(s, params)
+    keys = ("kinetic", "body_work", "dashpot", "friction", "residual")
+    return {k: b[k] for k in keys} | {"max_force_change_N": flip}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--full", action="store_true", help="the default deposit, not QUICK")
+    ap.add_argument("--hold", type=float, default=0.02, help="simulated seconds held (s)")
+    args = ap.parse_args()
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxgran.scenes import deposit
+    from jaxgran.state import replace
+
+    cfg = deposit.Config() if args.full else dataclasses.replace(deposit.Config(), **deposit.QUICK)
+    t0 = time.perf_counter()
+    result, params, peak = deposit.pour(cfg, progress=False)
+    _, _, grid = deposit.build(cfg)
+    settled = result.state
+    p = settled.particles
+    weight = float(jnp.sum(jnp.where(p.active, p.mass, 0.0))) * 9.81
+    rows = []
+    for label, prm0 in (
+        ("dashpots", params),
+        (
+            "no dashpots",
+            replace(
+                params,
+                normal_damping=jnp.zeros_like(params.normal_damping),
+                tangential_damping=jnp.zeros_like(params.tangential_damping),
+            ),
+        ),
+    ):
+        for fac in (1, 2, 4):
+            prm = replace(prm0, dt=params.dt / fac)
+            n = int(round(args.hold / float(prm.dt)))
+            r = hold(settled, prm, grid, n)
+            rows.append({"damping": label, "dt_s": float(prm.dt), "steps": n} | r)
+            print(json.dumps(rows[-1]), flush=True)
+    wall = time.perf_counter() - t0
+    lines = [
+        "## A settled deposit held at rest: the energy ledger against the time step",
+        "",
+        f"`python benchmarks/diagnose_dashpot_stability.py{' --full' if args.full else ''}`"
+        f' ({time.strftime("%Y-%m-%d")}, "{cpu_name()}", {os.cpu_count()} cores, float64,'
+        f" {wall:.0f} s). Deposit of {int(np.asarray(p.active).sum())} grains"
+        f" ({'default' if args.full else 'QUICK'} configuration, restitution"
+        f" {cfg.restitution}, K_n = {cfg.normal_stiffness:g} N/m), poured until settled"
+        f" ({result.steps} steps, kinetic energy {float(result.series['kinetic_energy'][-1]):.2e}"
+        f" J against a peak of {peak:.3g} J), then held for {args.hold} s of simulated time"
+        f" with the ledger attached. Weight of the pile {weight:.3g} N.",
+        "",
+        "| dashpots | dt (s) | steps | kinetic energy at the end (J) | gravity's work (J) |"
+        " dashpot booked (J) | friction booked (J) | balance residual (J) |"
+        " largest step-to-step change of a grain's force (N) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['damping']} | {r['dt_s']:.3e} | {r['steps']} | {r['kinetic']:.2e} |"
+            f" {r['body_work']:.2e} | {r['dashpot']:.2e} | {r['friction']:.2e} |"
+            f" {r['residual']:.2e} | {r['max_force_change_N']:.2e} |"
+        )
+    OUT.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
