@@ -263,8 +263,11 @@ def _as_origin(x) -> np.ndarray:
     return a
 
 
-def _as_scalar(x) -> np.ndarray:
-    return np.asarray(x, dtype=float).reshape(())
+def _as_cell_size(x) -> np.ndarray:
+    a = np.asarray(x, dtype=float)
+    if a.size != 1 or not (np.isfinite(a) and a > 0):
+        raise ValueError(f"grid cell size must be one positive, finite number (m), got {x!r}")
+    return a.reshape(())
 
 
 class Grid(eqx.Module):
@@ -280,7 +283,7 @@ class Grid(eqx.Module):
     """
 
     origin: np.ndarray = eqx.field(converter=_as_origin)
-    cell_size: np.ndarray = eqx.field(converter=_as_scalar)
+    cell_size: np.ndarray = eqx.field(converter=_as_cell_size)
     nx: int = eqx.field(static=True)
     ny: int = eqx.field(static=True)
     cell_capacity: int = eqx.field(static=True)
@@ -293,7 +296,7 @@ class Grid(eqx.Module):
         # checkpoints written before the grid became a pytree hold a plain tuple and float
         state = dict(state)
         state["origin"] = _as_origin(state["origin"])
-        state["cell_size"] = _as_scalar(state["cell_size"])
+        state["cell_size"] = _as_cell_size(state["cell_size"])
         for k, v in state.items():
             object.__setattr__(self, k, v)
 

@@ -203,6 +203,16 @@ def test_a_pile_at_rest_dissipates_no_more_than_it_was_given(rested_pile, dt_div
     assert b["dissipated"] <= b["input"] + stored0, b
 
 
+def test_bad_grid_is_refused():
+    for kw, match in (
+        ({"origin": (0.0,), "cell_size": 0.1}, "origin must be two numbers"),
+        ({"origin": (0.0, 0.0), "cell_size": 0.0}, "cell size must be one positive"),
+        ({"origin": (0.0, 0.0), "cell_size": float("nan")}, "cell size must be one positive"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            Grid(nx=2, ny=2, cell_capacity=4, **kw)
+
+
 def test_pile_settles_and_floor_carries_the_weight():
     parts, walls, params, grid = _pile(n_cells=30, seed=5, wall_friction=0.0)
     state = make_state(parts, walls, pair_capacity=200)
