@@ -55,8 +55,36 @@ def hold(state, params, grid, n_steps: int) -> dict:
     return {k: b[k] for k in keys} | {"max_force_change_N": flip}
 
 
+def settled_scene(scene: str, full: bool):
+    """The scene's pile after its own settling: ``(result, params, grid, cfg, label)``.
+    ``deposit`` (QUICK unless ``full``) pours until its stop rule; ``cantor`` (the default
+    24-pentagon oedometer) settles for its ``settle_time`` before any loading."""
+    import math
+
+    from jaxgran.simulate import simulate
+
+    if scene == "deposit":
+        from jaxgran.scenes import deposit
+
+        cfg = deposit.Config()
+        if not full:
+            cfg = dataclasses.replace(cfg, **deposit.QUICK)
+        result, params, _ = deposit.pour(cfg, progress=False)
+        grid = deposit.build(cfg)[2]
+        return result, params, grid, cfg, f"deposit ({'default' if full else 'QUICK'})"
+    from jaxgran.scenes import oedometer_cantor as oc
+
+    cfg = oc.Config()
+    state, params, grid = oc.build(cfg)
+    n = int(math.ceil(cfg.settle_time / float(params.dt)))
+    kw = dict(record_every=cfg.record_every, records_per_segment=cfg.records_per_segment)
+    result = simulate(state, params, grid, n_steps=n, progress=False, **kw)
+    return result, params, result.grid, cfg, "Cantor oedometer before loading (default)"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--scene", choices=["deposit", "cantor"], default="deposit")
     ap.add_argument("--full", action="store_true", help="the default deposit, not QUICK")
     ap.add_argument("--hold", type=float, default=0.02, help="simulated seconds held (s)")
     args = ap.parse_args()
@@ -66,13 +94,11 @@ def main() -> None:
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
-    from jaxgran.scenes import deposit
     from jaxgran.state import replace
 
-    cfg = deposit.Config() if args.full else dataclasses.replace(deposit.Config(), **deposit.QUICK)
     t0 = time.perf_counter()
-    result, params, peak = deposit.pour(cfg, progress=False)
-    _, _, grid = deposit.build(cfg)
+    result, params, grid, cfg, scene_label = settled_scene(args.scene, args.full)
+    peak = float(np.max(result.series["kinetic_energy"]))
     settled = result.state
     p = settled.particles
     weight = float(jnp.sum(jnp.where(p.active, p.mass, 0.0))) * 9.81
@@ -95,17 +121,21 @@ def main() -> None:
             rows.append({"damping": label, "dt_s": float(prm.dt), "steps": n} | r)
             print(json.dumps(rows[-1]), flush=True)
     wall = time.perf_counter() - t0
+    flags = (f" --scene {args.scene}" if args.scene != "deposit" else "") + (
+        " --full" if args.full else ""
+    )
+    title = f"## {scene_label}, held at rest: the energy ledger against the time step"
     lines = [
-        "## A settled deposit held at rest: the energy ledger against the time step",
+        title,
         "",
-        f"`python benchmarks/diagnose_dashpot_stability.py{' --full' if args.full else ''}`"
+        f"`python benchmarks/diagnose_dashpot_stability.py{flags}`"
         f' ({time.strftime("%Y-%m-%d")}, "{cpu_name()}", {os.cpu_count()} cores, float64,'
-        f" {wall:.0f} s). Deposit of {int(np.asarray(p.active).sum())} grains"
-        f" ({'default' if args.full else 'QUICK'} configuration, restitution"
-        f" {cfg.restitution}, K_n = {cfg.normal_stiffness:g} N/m), poured until settled"
-        f" ({result.steps} steps, kinetic energy {float(result.series['kinetic_energy'][-1]):.2e}"
-        f" J against a peak of {peak:.3g} J), then held for {args.hold} s of simulated time"
-        f" with the ledger attached. Weight of the pile {weight:.3g} N.",
+        f" {wall:.0f} s). {int(np.asarray(p.active).sum())} grains, restitution"
+        f" {cfg.restitution}, K_n = {cfg.normal_stiffness:g} N/m, settled by the scene's own"
+        f" rule ({result.steps} steps, kinetic energy"
+        f" {float(result.series['kinetic_energy'][-1]):.2e} J against a peak of {peak:.3g} J),"
+        f" then held for {args.hold} s of simulated time with the ledger attached. Weight of"
+        f" the pile {weight:.3g} N.",
         "",
         "| dashpots | dt (s) | steps | kinetic energy at the end (J) | gravity's work (J) |"
         " dashpot booked (J) | friction booked (J) | balance residual (J) |"
@@ -118,7 +148,14 @@ def main() -> None:
             f" {r['body_work']:.2e} | {r['dashpot']:.2e} | {r['friction']:.2e} |"
             f" {r['residual']:.2e} | {r['max_force_change_N']:.2e} |"
         )
-    OUT.write_text("\n".join(lines) + "\n")
+    # one section per scene: this run's replaces its own, the others stay
+    kept = []
+    if OUT.exists():
+        for sec in OUT.read_text().split("\n## "):
+            sec = sec if sec.startswith("## ") else "## " + sec
+            if sec.strip() and not sec.startswith(title):
+                kept.append(sec.rstrip())
+    OUT.write_text("\n\n".join(kept + ["\n".join(lines)]) + "\n")
     print("\n".join(lines))
 
 
