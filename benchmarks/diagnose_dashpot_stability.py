@@ -70,8 +70,7 @@ def settled_scene(scene: str, full: bool):
         if not full:
             cfg = dataclasses.replace(cfg, **deposit.QUICK)
         result, params, _ = deposit.pour(cfg, progress=False)
-        grid = deposit.build(cfg)[2]
-        return result, params, grid, cfg, f"deposit ({'default' if full else 'QUICK'})"
+        return result, params, result.grid, cfg, f"deposit ({'default' if full else 'QUICK'})"
     from jaxgran.scenes import oedometer_cantor as oc
 
     cfg = oc.Config()

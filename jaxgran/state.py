@@ -258,8 +258,8 @@ def make_params(
 
 def _as_origin(x) -> np.ndarray:
     a = np.asarray(x, dtype=float)
-    if a.shape != (2,):
-        raise ValueError(f"grid origin must be two numbers (x, y) in m, got {x!r}")
+    if a.shape != (2,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"grid origin must be two finite numbers (x, y) in m, got {x!r}")
     return a
 
 

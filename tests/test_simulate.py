@@ -205,7 +205,8 @@ def test_a_pile_at_rest_dissipates_no_more_than_it_was_given(rested_pile, dt_div
 
 def test_bad_grid_is_refused():
     for kw, match in (
-        ({"origin": (0.0,), "cell_size": 0.1}, "origin must be two numbers"),
+        ({"origin": (0.0,), "cell_size": 0.1}, "origin must be two finite numbers"),
+        ({"origin": (0.0, float("inf")), "cell_size": 0.1}, "origin must be two finite numbers"),
         ({"origin": (0.0, 0.0), "cell_size": 0.0}, "cell size must be one positive"),
         ({"origin": (0.0, 0.0), "cell_size": float("nan")}, "cell size must be one positive"),
     ):
