@@ -2,9 +2,11 @@
 
 Velocity Verlet (kick-drift-kick) for translation and the same half-step scheme for rotation
 (equivalent to the leap-frog of paper 002 §2.1 with velocities known at whole steps).
-Velocity-dependent forces (damping, tangential spring increments) use the half-step
-velocities. The scheme is second order, and for contact forces that balance torque it
-conserves linear and angular momentum to round-off.
+The tangential spring increments and the bonds' dashpots use the half-step velocities; the
+contact dashpots use the end-of-step velocity predicted with the previous force (second-order
+dissipation), which bounds the step together with the springs (:func:`critical_time_step`;
+:func:`linear_step_radius` checks a packing). The scheme is second order, and for contact
+forces that balance torque it conserves linear and angular momentum to round-off.
 """
 
 from __future__ import annotations
@@ -33,13 +35,28 @@ from .state import (
 
 
 def critical_time_step(particles: Particles, params: Params) -> float:
-    """Stability limit of the explicit scheme (s) for a two-body contact.
+    """Stability limit of the explicit scheme (s) for one contact between two bodies, with
+    its spring and its dashpots.
 
-    A pair of equal bodies on a spring K_n oscillates at ``w^2 = 2 K_n / m``; rotation adds an
-    effective mass ``I / l^2`` (l = bounding radius). Verlet is stable for ``w dt < 2``
-    (PHYSICS §D), so ``dt_crit = sqrt(2 m_min / K_n)`` with ``m_min = min(m, I/l^2)`` over
-    active particles. Several contacts stiffen a particle (up to ~4-6 K_n in a packing), which
-    is why :func:`stable_time_step` takes a safety factor well below 1.
+    Spring: a pair of equal bodies on a spring K_n oscillates at ``Omega^2 = 2 K_n / m``;
+    rotation adds an effective mass ``I / l^2`` (l = bounding radius), so ``Omega^2 = 2 K_n /
+    m_min`` with ``m_min = min(m, I/l^2)`` over active particles.
+
+    Dashpots: a contact's dashpot ``G m_e`` (``G = max(G_n, G_t)``, 1/s) damps the relative
+    velocity of its contact point at the rate ``Gamma = G m_e (1/m_i + l_i^2/I_i + 1/m_j +
+    l_j^2/I_j)``; since ``m_e (1/m_i + 1/m_j) = 1`` this is at most ``G (1 + lambda_max)``
+    with ``lambda = m l^2 / I`` (a wall contact, ``m_e = m``, gives the same bound). The
+    rotation term makes it several times ``G``: 2.6 for a regular pentagon, up to ~5 for
+    Voronoi cells.
+
+    :func:`step` feeds the dashpots the end-of-step velocity predicted with the previous
+    force, which keeps the booked dissipation second order in dt; for one mode
+    ``x'' + Gamma x' + Omega^2 x = 0`` that scheme is stable for ``(Omega dt / 2)^2 + Gamma dt
+    <= 1`` (docs/stability.md), hence ``dt_crit = 2 / (Gamma + sqrt(Gamma^2 + Omega^2))``:
+    ``2 / Omega`` without dashpots (Verlet, PHYSICS §D), ``1 / Gamma`` for a pure damper.
+    Several contacts stiffen and damp a particle more (the springs' ``Omega^2`` and the
+    dashpots' ``Gamma`` both add up over its contacts), which is why :func:`stable_time_step`
+    takes a safety factor well below 1.
     """
     act = np.asarray(particles.active)
     if not act.any():
@@ -49,7 +66,10 @@ def critical_time_step(particles: Particles, params: Params) -> float:
     ell = np.asarray(particles.bound_radius)[act]
     m_rot = np.minimum(m, inertia / ell**2)
     k = float(params.normal_stiffness)
-    return float(np.sqrt(2.0 * m_rot.min() / k))
+    omega2 = 2.0 * k / float(m_rot.min())
+    damping = max(float(params.normal_damping), float(params.tangential_damping))
+    gamma = damping * (1.0 + float(np.max(m * ell**2 / inertia)))
+    return float(2.0 / (gamma + np.sqrt(gamma**2 + omega2)))
 
 
 def stable_time_step(particles: Particles, params: Params, safety: float = 0.15) -> float:
@@ -66,8 +86,10 @@ def check_time_step(particles: Particles, params: Params) -> None:
     if dt > crit:
         raise ValueError(
             f"time step dt={dt:.3e} s exceeds the stability limit {crit:.3e} s of the stiffest "
-            f"contact (K_n={float(params.normal_stiffness):.3e} N/m); use "
-            f"dt <= {0.15 * crit:.3e} s (jaxgran.integrate.stable_time_step) or lower K_n"
+            f"contact (K_n={float(params.normal_stiffness):.3e} N/m, dashpots G_n="
+            f"{float(params.normal_damping):.3e} and G_t={float(params.tangential_damping):.3e}"
+            f" 1/s); use dt <= {0.15 * crit:.3e} s (jaxgran.integrate.stable_time_step), or "
+            "lower K_n or the damping"
         )
 
 
@@ -273,3 +295,127 @@ def initial_forces(state: SimState, params: Params, grid: Grid) -> tuple[SimStat
         ),
         errors,
     )
+
+
+def _contact_forces(state: SimState, params: Params, pos, angle, vel, omega, dvel, domega):
+    """Contact forces ``[n, 2]`` and torques ``[n]`` of ``state``'s contact list at the
+    given positions, angles, half-step velocities, spins and dashpot velocities, spins."""
+    p, c, w = state.particles, state.contacts, state.walls
+    q = replace(p, pos=pos, angle=angle, vel=vel, omega=omega)
+    f, t, _, _ = pair_forces(q, c, params, (dvel, domega))
+    fw, tw, _, _, _ = wall_forces(q, w, c.wall_xi, params, (dvel, domega), 2 * c.capacity)
+    return f + fw, t + tw
+
+
+def _bond_forces(state: SimState, params: Params, pos, angle, vel, omega):
+    """Bond forces ``[n, 2]`` and torques ``[n]`` at the given positions and velocities."""
+    from .bonds import bond_forces
+
+    q = replace(state.particles, pos=pos, angle=angle, vel=vel, omega=omega)
+    f, t, _ = bond_forces(q, state.bonds, state.walls, 0.0)
+    return f, t
+
+
+def _jacobian(state: SimState, params: Params, bonds: bool) -> np.ndarray:
+    """``[3n, 9n]`` (contacts) or ``[3n, 6n]`` (bonds): rows the forces and torques
+    ``(f_x0, f_y0, ..., t_0, ...)``, columns ``(x, y, angle)`` of each argument of
+    ``(pos, angle, vel, omega, damping vel, damping omega)`` in turn.
+
+    Column by column, each a ``jax.jvp`` along a unit direction, jitted with the state and
+    parameters as constants. The jitted ``jax.jacfwd``/``jacrev`` of the force evaluation,
+    and a jitted ``jvp`` taking the state as an input, hit an LLVM instruction-selection
+    error on the x86 CPU backend for some packings (jax 0.10: "Cannot select
+    X86ISD::SUBV_BROADCAST_LOAD" in a ``concatenate_bitcast_fusion``; the process aborts);
+    this graph compiles (once per call)."""
+    p = state.particles
+    n = p.pos.shape[0]
+    args = (p.pos, p.angle, p.vel, p.omega, p.vel, p.omega)[: 4 if bonds else 6]
+    law = _bond_forces if bonds else _contact_forces
+
+    @jax.jit
+    def column(e):
+        tangent = []
+        for k in range(len(args) // 2):
+            block = e[3 * n * k : 3 * n * (k + 1)]
+            tangent += [block[: 2 * n].reshape(n, 2), block[2 * n :]]
+        df, dtq = jax.jvp(lambda *a: law(state, params, *a), args, tuple(tangent))[1]
+        return df.reshape(-1), dtq
+
+    width = 3 * n * (len(args) // 2)
+    cols = []
+    for c in range(width):
+        df, dtq = column(jnp.zeros(width, p.pos.dtype).at[c].set(1.0))
+        cols.append(np.concatenate([np.asarray(df), np.asarray(dtq)]))
+    return np.stack(cols, axis=1)
+
+
+def linear_step_radius(state: SimState, params: Params, dt: float | None = None) -> dict:
+    """Spectral radius of one :func:`step`, linearised about ``state`` with its contacts
+    (and bonds).
+
+    The forces are differentiated (``jax.jacfwd``, on the host: a diagnostic, not a hot
+    path) with respect to the positions and angles (stiffness), the half-step velocity (the
+    contacts' tangential spring increment ``v_t dt``, which acts as a stiffness on the
+    displacement; the bonds' dashpots, e.g. the interface elements') and the velocity the
+    contact dashpots see (predicted end of step). Mass-normalised over the free particles'
+    ``(x, y, angle)`` they give the stiffness ``A`` and the dampings ``B`` (contact
+    dashpots) and ``D`` (bond dashpots), and the step, on the state ``(x, v, a)``, is the
+    linear map
+
+        ``v_h = v + dt a / 2``, ``x' = x + dt v_h``,
+        ``a' = -A x' - B (v + dt a) - D v_h``, ``v' = v_h + dt a' / 2``.
+
+    A radius above 1 by more than the geometric (rolling) modes' ``1 + O(dt)`` means the
+    scheme amplifies a perturbation of this packing at every step. Friction caps, the
+    no-tension clamp and bond damage are taken in the state they are in (a linearisation).
+
+    Args:
+        state: a state whose contact list and tangential springs are current (after a
+            :func:`jaxgran.simulate.simulate` or :func:`initial_forces`).
+        dt: time step (s); default ``params.dt``.
+
+    Returns:
+        dict: ``radius`` and ``radius_without_dashpots`` (the same step with ``B = D = 0``),
+        ``omega2`` (the largest real part of an eigenvalue of ``A``, 1/s^2), ``gamma``
+        (the largest eigenvalue of ``B + D / 2``, 1/s) and ``criterion`` ``(sqrt(omega2) dt
+        / 2)^2 + gamma dt``: one mode at a time, the step is stable for <= 1
+        (:func:`critical_time_step`). The dense eigenproblem has ``9 n`` rows for ``n`` free
+        particles: keep ``n`` to a few hundred.
+    """
+    p = state.particles
+    dt = float(params.dt) if dt is None else float(dt)
+    n = p.pos.shape[0]
+    j_contact = _jacobian(state, params, bonds=False)
+    j_bond = np.zeros((3 * n, 6 * n)) if state.bonds is None else _jacobian(state, params, True)
+    cols = lambda k: slice(3 * n * k, 3 * n * (k + 1))  # noqa: E731  x, v_h, v_d blocks
+    stiffness = -j_contact[:, cols(0)] - j_contact[:, cols(1)] / float(params.dt)
+    damping = -j_contact[:, cols(2)]
+    stiffness = stiffness - j_bond[:, cols(0)]
+    half_damping = -j_bond[:, cols(1)]
+    free = np.asarray(p.active & ~p.fixed)
+    keep = np.concatenate([np.repeat(free, 2), free])
+    inv_m = 1.0 / np.concatenate([np.repeat(np.asarray(p.mass), 2), np.asarray(p.inertia)])
+
+    def normalised(mat: np.ndarray) -> np.ndarray:
+        return (inv_m[:, None] * mat)[np.ix_(keep, keep)]
+
+    a_mat, b_mat, d_mat = normalised(stiffness), normalised(damping), normalised(half_damping)
+
+    def radius(b: np.ndarray, d: np.ndarray) -> float:
+        e = np.eye(a_mat.shape[0])
+        x1 = [e, dt * e, 0.5 * dt * dt * e]  # columns: x, v, a
+        vh = [0.0 * e, e, 0.5 * dt * e]
+        a1 = [-a_mat @ x1[0], -a_mat @ x1[1] - b - d, -a_mat @ x1[2] - dt * b - 0.5 * dt * d]
+        v1 = [vh[k] + 0.5 * dt * a1[k] for k in range(3)]
+        return float(np.max(np.abs(np.linalg.eigvals(np.block([x1, v1, a1])))))
+
+    omega2 = float(np.max(np.linalg.eigvals(a_mat).real))
+    gamma = float(np.max(np.linalg.eigvals(b_mat + 0.5 * d_mat).real))
+    zero = np.zeros_like(b_mat)
+    return {
+        "radius": radius(b_mat, d_mat),
+        "radius_without_dashpots": radius(zero, zero),
+        "omega2": omega2,
+        "gamma": gamma,
+        "criterion": (np.sqrt(max(omega2, 0.0)) * dt / 2) ** 2 + gamma * dt,
+    }

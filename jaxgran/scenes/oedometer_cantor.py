@@ -11,12 +11,14 @@ Parameters: paper 000 Table I (K_n = 6e5 N/m, K_t = 2.2e4 N/m, mu = 0.74, areal 
 1.2 g/cm^2 = 12 kg/m^2, Verlet distance 2 mm, nu = 0.3), a viscous damping from a restitution
 coefficient (not in Table I), and the breakage thresholds calibrated on the Brazilian test
 of the paper (F = 150.79 N, r = 1 cm) at our thickness t = 1 cm. Table I's dt = 5e-4 s is
-far above the explicit stability limit ``sqrt(2 m_min / K_n)`` (about 3e-5 s for a 1 cm
-pentagon and less for its fragments); dt here is ``dt_safety`` times the limit of the
-smallest fragment that is kept (``min_fragment_fraction`` of the mean grain mass). A smaller
-piece merges into the neighbouring piece across its fracture segment (``small_pieces =
-"merge"``; a breakage whose pieces all merge back is suppressed and the grain stays whole),
-or is dropped as fines that count as lost mass (``"fines"``). The mass a replacement loses
+far above the explicit stability limit of the springs and dashpots
+(:func:`jaxgran.integrate.critical_time_step`: about 1.2e-5 s for 1 cm pentagons and less
+for their fragments); dt here is ``dt_safety`` times the limit of the particles present,
+shrunk as lighter fragments appear (none lighter than ``min_fragment_fraction`` of the
+mean grain mass is kept). A smaller piece merges into the neighbouring piece across its
+fracture segment (``small_pieces = "merge"``; a breakage whose pieces all merge back is
+suppressed and the grain stays whole), or is dropped as fines that count as lost mass
+(``"fines"``). The mass a replacement loses
 is then the rounding of the new corners (sphero-radius ``sphero_radius``) and the caps the
 erosion clips where neighbours overlap (``erosion``); ``conserve_mass`` gives the fragments
 the mass of their uneroded pieces instead (paper 000 §III). See ``docs/stability.md``.
@@ -86,10 +88,11 @@ class Config(Checked):
     calibration_force: float = 150.79  # N, Brazilian breaking force (paper 000 §III)
     calibration_radius: float = 0.01  # m
     min_fragment_fraction: float = 0.05  # fragments lighter than this x mean mass: fines
-    # x the stability limit of the lightest particle present; 0.3 already lets the pile
-    # jitter (the bar carries a tenth of the load of 0.08-0.15): several contacts stiffen a
-    # grain and the dashpot narrows the stable range (docs/stability.md)
-    dt_safety: float = 0.15
+    # x the stability limit (springs and dashpots) of the particles present: several
+    # contacts stiffen and damp a grain more than the one-contact limit assumes; 0.4 keeps
+    # the linearised step of the settled and the loaded quick piles at 0.34 and 0.28 of its
+    # stability limit (benchmarks/LINEAR_STABILITY_RESULTS.md)
+    dt_safety: float = 0.4
     settle_time: float = 0.6  # s, at most, under gravity before loading
     settle_ke_ratio: float = 1.0e-4  # settled when KE < this x its peak
     bar_gap: float = 5.0e-4  # m, bar above the highest grain when loading starts
@@ -149,19 +152,25 @@ QUICK = {
 
 
 def adaptive_dt(particles, params, safety: float) -> float:
-    """Time step (s) for the particles present now: ``safety`` x the stability limit of the
-    lightest one (:func:`jaxgran.integrate.critical_time_step`). The scenes start with the
+    """Time step (s) for the particles present now: ``safety`` x their stability limit
+    (:func:`jaxgran.integrate.critical_time_step`: the springs of the lightest, the
+    dashpots at the largest lever arm). The scenes start with the
     intact grains' step and shrink it when a breakage creates a lighter fragment (dt is a
     traced parameter, so this never recompiles)."""
     return safety * critical_time_step(particles, params)
 
 
-def smallest_dt(cfg, mean_mass: float) -> float:
-    """Lower bound (s) on the adaptive step: the limit of the lightest fragment kept
-    (``min_fragment_fraction`` x the mean grain mass; a sliver has I / l^2 of about a
-    quarter of its mass), used to size the step budget of the loading stage."""
-    m_rot = 0.25 * cfg.min_fragment_fraction * mean_mass
-    return cfg.dt_safety * math.sqrt(2.0 * m_rot / cfg.normal_stiffness)
+def smallest_dt(cfg, mean_mass: float, params) -> float:
+    """Lower bound (s) on the adaptive step, used to size the step budget of the loading
+    stage: ``dt_safety`` x the limit of :func:`jaxgran.integrate.critical_time_step` for the
+    lightest fragment kept (``min_fragment_fraction`` x the mean grain mass ``m``) taken
+    as a sliver, ``m l^2 / I`` = 8 (a thin triangle; a regular pentagon has 2.6): springs
+    ``Omega^2 = 2 K_n / (m / 8)``, dashpots ``Gamma = 9 max(G_n, G_t)`` of ``params``."""
+    lever = 8.0
+    m_rot = cfg.min_fragment_fraction * mean_mass / lever
+    omega2 = 2.0 * cfg.normal_stiffness / m_rot
+    gamma = (1.0 + lever) * max(float(params.normal_damping), float(params.tangential_damping))
+    return cfg.dt_safety * 2.0 / (gamma + math.sqrt(gamma**2 + omega2))
 
 
 def pentagons(cfg: Config) -> list[np.ndarray]:
@@ -321,7 +330,9 @@ def simulate_test(
         s0 if s0 is not None else saved["simulate"]["state"],
         params0,
         brk.grid,
-        n_steps=int(math.ceil(cfg.load_time / min(float(params0.dt), smallest_dt(cfg, m_mean)))),
+        n_steps=int(
+            math.ceil(cfg.load_time / min(float(params0.dt), smallest_dt(cfg, m_mean, params0)))
+        ),
         record_every=cfg.record_every,
         records_per_segment=cfg.records_per_segment,
         frame_every=10,
@@ -595,8 +606,9 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "dt_final_s": float(info["dt_log"][-1][1]),
         "dt_changes": [[float(t), float(d)] for t, d in info["dt_log"]],
         "dt_table_I_s": 5.0e-4,
-        "dt_note": "Table I's 5e-4 s exceeds the stability limit sqrt(2 m_min / K_n); dt here "
-        "is dt_safety x the limit of the lightest particle present, shrunk after each "
+        "dt_note": "Table I's 5e-4 s exceeds the stability limit of the springs and dashpots "
+        "(jaxgran.integrate.critical_time_step); dt here is dt_safety x the limit of the "
+        "particles present, shrunk after each "
         "breakage that creates a lighter fragment (dt_changes: [t_load s, dt s])",
         "settle_time_s": float(settle.state.time),
         "settled": bool(settle.stopped_early),

@@ -68,7 +68,7 @@ class Config(Checked):
     calibration_force: float = 150.79  # N (paper 000 §III)
     calibration_radius: float = 0.01  # m
     min_fragment_fraction: float = 0.05  # lighter pieces (x mean mass): see small_pieces
-    dt_safety: float = 0.15  # see oedometer_cantor.Config.dt_safety
+    dt_safety: float = 0.4  # see oedometer_cantor.Config.dt_safety
     settle_time: float = 1.5  # s
     settle_ke_ratio: float = 1.0e-4  # settled when KE < this x its peak
     bar_gap: float = 1.0e-3  # m
