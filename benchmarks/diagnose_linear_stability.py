@@ -16,7 +16,6 @@ radius: the dashpots amplify a perturbation at every step).
 
 from __future__ import annotations
 
-import math
 import os
 import sys
 import time
@@ -31,13 +30,9 @@ OUT = Path(__file__).resolve().parent / "LINEAR_STABILITY_RESULTS.md"
 
 def springs_only_step(particles, params, safety: float) -> float:
     """The step of the rule before 2026-12-05 (s): ``safety x sqrt(2 m_min / K_n)``."""
-    import numpy as np
+    from jaxgran.integrate import critical_time_step
 
-    act = np.asarray(particles.active)
-    m = np.asarray(particles.mass)[act]
-    lever = np.asarray(particles.inertia)[act] / np.asarray(particles.bound_radius)[act] ** 2
-    m_min = float(np.minimum(m, lever).min())
-    return safety * math.sqrt(2.0 * m_min / float(params.normal_stiffness))
+    return safety * critical_time_step(particles, params, dashpots=False)
 
 
 def packings():

@@ -34,7 +34,7 @@ from .state import (
 )
 
 
-def critical_time_step(particles: Particles, params: Params) -> float:
+def critical_time_step(particles: Particles, params: Params, dashpots: bool = True) -> float:
     """Stability limit of the explicit scheme (s) for one contact between two bodies, with
     its spring and its dashpots.
 
@@ -56,7 +56,8 @@ def critical_time_step(particles: Particles, params: Params) -> float:
     ``2 / Omega`` without dashpots (Verlet, PHYSICS §D), ``1 / Gamma`` for a pure damper.
     Several contacts stiffen and damp a particle more (the springs' ``Omega^2`` and the
     dashpots' ``Gamma`` both add up over its contacts), which is why :func:`stable_time_step`
-    takes a safety factor well below 1.
+    takes a safety factor well below 1. ``dashpots=False`` gives the springs' limit alone
+    ``sqrt(2 m_min / K_n)`` (the rule before 2026-12-05, for comparisons).
     """
     act = np.asarray(particles.active)
     if not act.any():
@@ -67,7 +68,8 @@ def critical_time_step(particles: Particles, params: Params) -> float:
     m_rot = np.minimum(m, inertia / ell**2)
     k = float(params.normal_stiffness)
     omega2 = 2.0 * k / float(m_rot.min())
-    damping = max(float(params.normal_damping), float(params.tangential_damping))
+    damping = max(float(params.normal_damping), float(params.tangential_damping), 0.0)
+    damping = damping if dashpots else 0.0
     gamma = damping * (1.0 + float(np.max(m * ell**2 / inertia)))
     return float(2.0 / (gamma + np.sqrt(gamma**2 + omega2)))
 
@@ -332,8 +334,11 @@ def _jacobian(state: SimState, params: Params, bonds: bool) -> np.ndarray:
     args = (p.pos, p.angle, p.vel, p.omega, p.vel, p.omega)[: 4 if bonds else 6]
     law = _bond_forces if bonds else _contact_forces
 
+    width = 3 * n * (len(args) // 2)
+
     @jax.jit
-    def column(e):
+    def column(c):
+        e = jnp.zeros(width, p.pos.dtype).at[c].set(1.0)
         tangent = []
         for k in range(len(args) // 2):
             block = e[3 * n * k : 3 * n * (k + 1)]
@@ -341,10 +346,9 @@ def _jacobian(state: SimState, params: Params, bonds: bool) -> np.ndarray:
         df, dtq = jax.jvp(lambda *a: law(state, params, *a), args, tuple(tangent))[1]
         return df.reshape(-1), dtq
 
-    width = 3 * n * (len(args) // 2)
     cols = []
     for c in range(width):
-        df, dtq = column(jnp.zeros(width, p.pos.dtype).at[c].set(1.0))
+        df, dtq = column(c)
         cols.append(np.concatenate([np.asarray(df), np.asarray(dtq)]))
     return np.stack(cols, axis=1)
 
@@ -353,14 +357,14 @@ def linear_step_radius(state: SimState, params: Params, dt: float | None = None)
     """Spectral radius of one :func:`step`, linearised about ``state`` with its contacts
     (and bonds).
 
-    The forces are differentiated (``jax.jacfwd``, on the host: a diagnostic, not a hot
-    path) with respect to the positions and angles (stiffness), the half-step velocity (the
-    contacts' tangential spring increment ``v_t dt``, which acts as a stiffness on the
-    displacement; the bonds' dashpots, e.g. the interface elements') and the velocity the
-    contact dashpots see (predicted end of step). Mass-normalised over the free particles'
-    ``(x, y, angle)`` they give the stiffness ``A`` and the dampings ``B`` (contact
-    dashpots) and ``D`` (bond dashpots), and the step, on the state ``(x, v, a)``, is the
-    linear map
+    The forces are differentiated (one ``jax.jvp`` per column, assembled on the host: a
+    diagnostic, not a hot path) with respect to the positions and angles (stiffness), the
+    half-step velocity (the contacts' tangential spring increment ``v_t dt``, which acts as
+    a stiffness on the displacement; the bonds' dashpots, e.g. the interface elements') and
+    the velocity the contact dashpots see (predicted end of step). Mass-normalised over the
+    free particles' ``(x, y, angle)`` they give the stiffness ``A`` and the dampings ``B``
+    (contact dashpots) and ``D`` (bond dashpots), and the step, on the state ``(x, v, a)``,
+    is the linear map
 
         ``v_h = v + dt a / 2``, ``x' = x + dt v_h``,
         ``a' = -A x' - B (v + dt a) - D v_h``, ``v' = v_h + dt a' / 2``.
@@ -394,7 +398,8 @@ def linear_step_radius(state: SimState, params: Params, dt: float | None = None)
     half_damping = -j_bond[:, cols(1)]
     free = np.asarray(p.active & ~p.fixed)
     keep = np.concatenate([np.repeat(free, 2), free])
-    inv_m = 1.0 / np.concatenate([np.repeat(np.asarray(p.mass), 2), np.asarray(p.inertia)])
+    mass = np.concatenate([np.repeat(np.asarray(p.mass), 2), np.asarray(p.inertia)])
+    inv_m = np.divide(1.0, mass, out=np.zeros_like(mass), where=keep)  # padding: no mass
 
     def normalised(mat: np.ndarray) -> np.ndarray:
         return (inv_m[:, None] * mat)[np.ix_(keep, keep)]
