@@ -103,6 +103,9 @@ def main() -> None:
     settled = result.state
     p = settled.particles
     weight = float(jnp.sum(jnp.where(p.active, p.mass, 0.0))) * 9.81
+    # the scene's step, half of it, and the step of the springs-only rule it had before the
+    # limit counted the dashpots (0.25 x for the deposit, 0.15 x for the oedometer)
+    before = springs_only_step(p, params, 0.25 if args.scene == "deposit" else 0.15)
     rows = []
     for label, prm0 in (
         ("dashpots", params),
@@ -115,9 +118,6 @@ def main() -> None:
             ),
         ),
     ):
-        # the scene's step, half of it, and the step of the springs-only rule it had before
-        # the limit counted the dashpots (0.25 x for the deposit, 0.15 x for the oedometer)
-        before = springs_only_step(p, params, 0.25 if args.scene == "deposit" else 0.15)
         for which, dt in (
             ("scene's", float(params.dt)),
             ("scene's / 2", float(params.dt) / 2),

@@ -34,6 +34,13 @@ from .state import (
 )
 
 
+def mode_time_step_limit(omega2: float, gamma: float) -> float:
+    """Largest stable step (s) of :func:`step` for one mode ``x'' + gamma x' + omega2 x = 0``
+    (``omega2`` in 1/s^2, ``gamma`` in 1/s): the root of ``(Omega dt / 2)^2 + gamma dt = 1``,
+    ``2 / (gamma + sqrt(gamma^2 + omega2))`` (docs/stability.md)."""
+    return float(2.0 / (gamma + np.sqrt(gamma**2 + omega2)))
+
+
 def critical_time_step(particles: Particles, params: Params, dashpots: bool = True) -> float:
     """Stability limit of the explicit scheme (s) for one contact between two bodies, with
     its spring and its dashpots.
@@ -71,7 +78,7 @@ def critical_time_step(particles: Particles, params: Params, dashpots: bool = Tr
     damping = max(float(params.normal_damping), float(params.tangential_damping), 0.0)
     damping = damping if dashpots else 0.0
     gamma = damping * (1.0 + float(np.max(m * ell**2 / inertia)))
-    return float(2.0 / (gamma + np.sqrt(gamma**2 + omega2)))
+    return mode_time_step_limit(omega2, gamma)
 
 
 def stable_time_step(particles: Particles, params: Params, safety: float = 0.15) -> float:

@@ -43,7 +43,7 @@ from .. import energy
 from .. import geometry as geo
 from ..breakage import metrics
 from ..breakage.averaged import make_breakage, method_name
-from ..integrate import check_time_step, critical_time_step
+from ..integrate import check_time_step, critical_time_step, mode_time_step_limit
 from ..partition import make_grid
 from ..simulate import frame_of, simulate
 from ..state import (
@@ -170,7 +170,7 @@ def smallest_dt(cfg, mean_mass: float, params) -> float:
     m_rot = cfg.min_fragment_fraction * mean_mass / lever
     omega2 = 2.0 * cfg.normal_stiffness / m_rot
     gamma = (1.0 + lever) * max(float(params.normal_damping), float(params.tangential_damping))
-    return cfg.dt_safety * 2.0 / (gamma + math.sqrt(gamma**2 + omega2))
+    return cfg.dt_safety * mode_time_step_limit(omega2, gamma)
 
 
 def pentagons(cfg: Config) -> list[np.ndarray]:
