@@ -10,9 +10,12 @@ energy below would not be an invariant). Every cell gets a seeded random velocit
 angular velocity (``--speed`` rms per component, ``--speed / h`` rad/s, h the mean cell
 size; zero net momentum). Then ``T = --default-steps x dt_default`` of physical time is run
 with ``dt = f x dt_theory`` for each factor f (``--factors``), where ``dt_theory`` is the
-scene's own stability bound at safety 1 (the Gershgorin bound
-:func:`jaxgran.scenes.bonded.stable_dt` / :func:`jaxgran.scenes.interface.stable_dt`) and
-``dt_default = dt_safety x dt_theory`` is what the scene runs with.
+scene's springs-only stability bound at safety 1 (the Gershgorin bound
+:func:`jaxgran.scenes.bonded.stable_dt`; :func:`jaxgran.scenes.interface.stable_dt` with
+``dashpots=False``) and ``dt_default = f_default x dt_theory`` is what the scene runs with
+(the bonded scene: ``f_default = dt_safety``; the interface scene counts its element and
+contact dashpots in its step, so ``f_default = dt_safety x`` that bound's ratio to the
+springs' one).
 
 Measured per f: the relative energy error ``max_t |E(t) - E(0)| / E(0)`` over every step,
 with ``E`` = kinetic (translation + rotation) + bond elastic + contact elastic energy; the
@@ -61,6 +64,7 @@ from machine import cpu_name  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FACTORS = "0.05,0.1,0.2,0.3,0.5,0.7,0.85,1.0,1.2,1.5,2.0,2.5,3.0,4.0"
+FACTOR_GRID = {float(f) for f in FACTORS.split(",")}  # x ticks of the chart
 UNSTABLE_ERROR = 1.0  # energy error above which a run counts as unstable
 BIG = 1.0e30  # a strength that is never reached
 
@@ -197,9 +201,10 @@ def bonded_case(cells: int, seed: int, speed: float, dtype, conservative: bool =
     )
 
 
-def _case(name, label, state, run, energy, spec, h) -> Case:
+def _case(name, label, state, run, energy, spec, h, limits=None) -> Case:
     """A Case from the kicked state, ``run = (params, grid, dt_theory, dt_safety)``, the
-    energy function, the specimen (counts) and the cell size h (m)."""
+    energy function, the specimen (counts), the cell size h (m) and ``limits`` known at
+    build (as f)."""
     params, grid, dt_theory, dt_safety = run
     return Case(
         name=name,
@@ -213,6 +218,7 @@ def _case(name, label, state, run, energy, spec, h) -> Case:
         n_particles=spec.n_particles,
         n_bonds=spec.n_bonds,
         cell_size=h,
+        limits=dict(limits or {}),
     )
 
 
@@ -236,9 +242,13 @@ def interface_case(seed: int, speed: float, dtype, conservative: bool = True) ->
     region = ("disc", 0.5 * cfg.diameter, (0.0, 0.0))
     spec = si.make_specimen(cfg, region, mat)
     state = si.assemble(spec, mat, [], dtype=dtype)
-    dt_theory = si.stable_dt(state, scene, 1.0)
+    # f is measured against the springs' bound (the scene's rule before it counted the
+    # dashpots); the scene's step, with its dashpots, is a smaller f
+    dt_theory = si.stable_dt(state, scene, 1.0, dashpots=False)
+    damped = si.stable_dt(si.assemble(spec, scene, [], dtype=dtype), scene, 1.0) / dt_theory
+    default_f = cfg.dt_safety * damped
     skin = 0.2 * float(spec.radius.min())
-    params = si.make_run_params(state, mat, cfg.dt_safety * dt_theory, skin)
+    params = si.make_run_params(state, mat, default_f * dt_theory, skin)
     if conservative:
         params = replace(params, tangential_stiffness=params.tangential_stiffness * 0.0)
     grid = bd.grid_around([state], 0.6 * cfg.diameter, skin)
@@ -248,10 +258,11 @@ def interface_case(seed: int, speed: float, dtype, conservative: bool = True) ->
         "interface" if conservative else "interface-as-run",
         f"interface-bonded disc, {spec.n_particles} discs (paper 003)",
         _kick(state, speed, h, seed + 1),
-        (params, grid, dt_theory, cfg.dt_safety),
+        (params, grid, dt_theory, default_f),
         interface_energy,
         spec,
         h,
+        {"dashpots": damped},
     )
 
 
@@ -555,15 +566,20 @@ def chart(cases: list[Case], results: dict, as_run: dict, path: Path) -> None:
                 label=f"{case.name} with its own dashpots / contact law: "
                 f"unstable from f = {edge:.2f}",
             )
-    for d in sorted({c.dt_safety for c in cases}):
+    for case in cases:
+        c = COLOURS.get(case.name, "k")
         for a in (ax_e, ax_t):
-            a.axvline(d, color="k", ls="--", lw=1)
-        ax_e.plot([], [], color="k", ls="--", lw=1, label=f"scene default, f = dt_safety = {d:g}")
+            a.axvline(case.dt_safety, color=c, ls="--", lw=1)
+        ax_e.plot(
+            [], [], color=c, ls="--", lw=1, label=f"{case.name}: default, f = {case.dt_safety:.3g}"
+        )
     for a in (ax_e, ax_t):
         a.axvline(1.0, color="grey", ls=":", lw=1.5)
         a.grid(True, which="major", alpha=0.3)
     ax_e.plot([], [], color="grey", ls=":", lw=1.5, label="theoretical limit, f = 1")
+    defaults = {c.dt_safety for c in cases}
     factors = sorted({r["factor"] for res in results.values() for r in res["rows"]})
+    factors = [f for f in factors if f in FACTOR_GRID or f not in defaults]  # ticks: the grid
     ax_t.set_xlim(0.85 * factors[0], 1.15 * factors[-1])
     ax_t.xaxis.set_major_locator(FixedLocator(factors))
     ax_t.xaxis.set_minor_locator(NullLocator())
@@ -574,7 +590,7 @@ def chart(cases: list[Case], results: dict, as_run: dict, path: Path) -> None:
     ax_e.set_ylabel("energy error  max_t |E(t) - E(0)| / E(0)")
     ax_e.legend(fontsize=7, loc="upper left")
     ax_t.set_ylabel("wall time of the run (s), same physical time")
-    ax_t.set_xlabel("f = dt / dt_theory   (dt_theory: the scene's Gershgorin bound, safety 1)")
+    ax_t.set_xlabel("f = dt / dt_theory   (dt_theory: the springs' Gershgorin bound, safety 1)")
     ax_t.legend(fontsize=7, loc="lower left")
     fig.suptitle(
         "Time step vs energy error and wall time: undamped, unbreakable bonded discs", fontsize=10
@@ -643,9 +659,10 @@ def markdown(cases: list[Case], results: dict, as_run: dict, args, meta: dict) -
         f"{args.speed:g} m/s per component and {args.speed:g} / h rad/s, h the mean cell "
         "size; zero net momentum). "
         f"Physical time = {args.default_steps} steps at the scene's default dt, so a run at "
-        f"factor f has {args.default_steps} x dt_safety / f steps (rounded up to whole "
+        f"factor f has {args.default_steps} x f_default / f steps (rounded up to whole "
         f"segments of {args.chunk}); dt = f x dt_theory, dt_theory = the scene's "
-        "`stable_dt(..., safety=1)` (Gershgorin bound min_i sqrt(2 m_i / k_i)). Energy error "
+        "springs-only `stable_dt(..., safety=1)` (Gershgorin bound min_i sqrt(2 m_i / k_i); "
+        "the interface scene's own step also counts its dashpots, a smaller f). Energy error "
         "= max over every step of |E(t) - E(0)| / E(0), E = kinetic + bond elastic + contact "
         "elastic. Wall time: the plain run (`jaxgran.simulate.run_segment` of "
         f"{args.chunk} steps in a host loop), compilation excluded, median of {args.repeats}; "
@@ -675,7 +692,7 @@ def markdown(cases: list[Case], results: dict, as_run: dict, args, meta: dict) -
             f"### {case.label}",
             "",
             f"{case.n_particles} particles, {case.n_bonds} bonds; dt_theory = "
-            f"{case.dt_theory:.4g} s; the scene's default dt_safety = {case.dt_safety:g} "
+            f"{case.dt_theory:.4g} s; the scene's default step is f = {case.dt_safety:.3g} "
             f"(dt = {case.dt_safety * case.dt_theory:.4g} s).",
             "",
         ]
@@ -716,6 +733,14 @@ def markdown(cases: list[Case], results: dict, as_run: dict, args, meta: dict) -
                 + "; ".join(f"{LIMIT_NAMES[k]} {v:.3f}" for k, v in lim.items())
                 + ".",
             ]
+        if "dashpots" in case.limits:
+            lines += [
+                "",
+                "The scene's `stable_dt` with its dashpots (safety 1) is f = "
+                f"{case.limits['dashpots']:.3f}; its default step (dt_safety "
+                f"{case.dt_safety / case.limits['dashpots']:g} of that) is f = "
+                f"{case.dt_safety:.3f}.",
+            ]
         run = as_run.get(case.name)
         if run is not None:
             lines += [
@@ -735,8 +760,8 @@ def markdown(cases: list[Case], results: dict, as_run: dict, args, meta: dict) -
             f"**Largest stable f = {res['largest_stable']:.3f}** (smallest unstable "
             + (f"{res['smallest_unstable']:.3f}" if res["smallest_unstable"] else "none found")
             + f"): {res['largest_stable']:.2f}x the theoretical limit f = 1 and "
-            f"{res['largest_stable'] / case.dt_safety:.2f}x the default dt_safety = "
-            f"{case.dt_safety:g}.",
+            f"{res['largest_stable'] / case.dt_safety:.2f}x the scene's default f = "
+            f"{case.dt_safety:.3g}.",
             "",
         ]
     lines += [
@@ -851,11 +876,12 @@ def main() -> None:
             lim = linear_limits(case)
             case.limits.update(lim)
             print(f"  linearised limits (f): {lim}", flush=True)
-        results[name] = sweep(case, factors, args)
+        grid_f = sorted(set(factors) | {case.dt_safety})  # the scene's default among them
+        results[name] = sweep(case, grid_f, args)
         cases.append(case)
         if not args.no_as_run:
             real = builders[name](False)
-            as_run[name] = sweep(real, factors, args, timed=False)
+            as_run[name] = sweep(real, grid_f, args, timed=False)
             as_run[name]["what"] = as_run_what[name]
     meta = {
         "cpu": cpu_name(),

@@ -9,8 +9,10 @@ distance, ``k_s = k_n / 2.5``), element tensile strength ``sigma_b = 10 MPa``, c
 interface, radius multiplier ``lambda = 1.5`` (disc interfaces 1.5 times as wide as the smaller
 disc's radius on each side, so wider than that disc: PFC's flat joints default to 1; here it is
 the parameter that sets the ratio of compressive to tensile strength). With these the 25 x 50 mm
-disc specimen (seed 0, 76 discs) has a direct tensile strength of 2.98 MPa and an unconfined
-compressive strength of 31.0 MPa, 10.4 times it, as for a gypsum. The unconfined strength is set
+disc specimen (seed 0, 76 discs) has a direct tensile strength of 3.00 MPa and an unconfined
+compressive strength of 30.8 MPa, 10.3 times it, as for a gypsum (``jaxgran run
+interface-tension`` and ``interface-uniaxial``, 2026-12-05; 2.98 and 30.8 MPa at the step of
+0.5 of the springs-only bound used before). The unconfined strength is set
 by the interface width, not by the cohesion: with ``lambda = 1`` (sigma_b = 14 MPa) it was
 16.4-16.5 MPa for c = 42-140 MPa, 5.9 times the tensile strength, and a residual friction of 1
 instead of 0.5 only raised that to 6.2; ``lambda = 1.5`` gave 9.4. The parallel-bond baseline
@@ -56,6 +58,7 @@ from .. import geometry as geo
 from .. import interface as itf
 from ..bonds import attach_to_walls
 from ..contact import damping_from_restitution
+from ..integrate import mode_time_step_limit
 from ..state import SimState, make_params, make_state, make_walls, particles_from_polygons, replace
 from . import bonded as bd
 from .limits import COUNT_OR_AUTO, Checked
@@ -110,7 +113,7 @@ class Common(Material):
     strain_rate: float = 2.0  # 1/s, loading (both walls together / specimen size)
     max_strain: float = 0.01  # stop here at the latest
     drop_fraction: float = 0.5  # stop once the load falls below this x the peak
-    dt_safety: float = 0.5
+    dt_safety: float = 1.0  # of stable_dt's limit, itself about half the true one (docstring)
     record_every: int = 50
     records_per_segment: int = 10
 
@@ -396,39 +399,79 @@ def assemble(
     return replace(make_state(parts, w, pair_capacity=8 * parts.capacity), bonds=bonds)
 
 
-def stable_dt(state: SimState, mat: Material, safety: float = 0.5) -> float:
-    """Time step (s): ``safety x min_i sqrt(2 m_i / k_i)`` with ``k_i`` the sum over the
-    interfaces of particle i of ``max(k_n, k_s) A`` plus two contacts ``2 K_n``, and
-    ``m_i = min(m, I / l^2)`` (the Gershgorin bound of :func:`jaxgran.scenes.bonded.stable_dt`)."""
+def contact_damping(state: SimState, mat: Material) -> tuple[float, float]:
+    """Contact dashpots ``(G_n, G_t)`` (1/s) of an interface scene: the rates that give
+    ``mat.restitution`` to a contact of ``K_n = E_c T`` (``K_t = K_n / stiffness_ratio``)
+    between two particles of the median mass (``m_e`` = half of it)."""
+    m = np.asarray(state.particles.mass)[np.asarray(state.particles.active)]
+    m_eff = 0.5 * float(np.median(m))
+    k_n = mat.contact_stiffness
+    return (
+        damping_from_restitution(mat.restitution, k_n, m_eff),
+        damping_from_restitution(mat.restitution, k_n / mat.stiffness_ratio, m_eff),
+    )
+
+
+def stable_dt(state: SimState, mat: Material, safety: float = 1.0, dashpots: bool = True) -> float:
+    """Time step (s): ``safety`` x the step limit of the interface network with its dashpots,
+    ``2 / (Gamma + sqrt(Gamma^2 + Omega^2))`` (:func:`jaxgran.integrate.mode_time_step_limit`).
+
+    * Springs: ``Omega^2 = max_i 2 k_i / m_i`` with ``k_i`` the sum over the interfaces of
+      particle i of ``max(k_n, k_s) A`` plus two contacts ``2 K_n``, and ``m_i = min(m, I /
+      l^2)`` (the Gershgorin estimate of :func:`jaxgran.scenes.bonded.stable_dt`).
+    * Element dashpots, estimated the same way: ``Gamma_b = max_i 2 c_i / m_i`` with ``c_i``
+      the sum over the interfaces of particle i of ``n_e max(eta_n, eta_s)`` (N s/m). They
+      damp the half-step velocity, so they count half in the criterion ``(Omega dt / 2)^2 +
+      (Gamma_c + Gamma_b / 2) dt <= 1``.
+    * Contact dashpots (:func:`contact_damping`): one contact's rate, ``Gamma_c = max(G_n,
+      G_t) (1 + max m l^2 / I)`` (:func:`jaxgran.integrate.critical_time_step`); they take
+      over from the element dashpots as the interfaces fail.
+
+    With the element dashpots of ``damping_ratio = 0.3`` the dashpots set most of the
+    limit. The springs-only limit this function gave before (``sqrt(2 m_i / k_i)``,
+    ``dashpots=False`` here, for comparisons) was unstable from 0.86 of it with the scene's
+    dashpots (119 discs). Like the springs' estimate, the whole is about half the true limit:
+    the step linearised about the scenes' specimens is at 0.15-0.45 of the stability
+    criterion at ``safety = 1`` (``docs/stability.md``).
+    """
+    if not 0 < safety <= 1:
+        raise ValueError(f"safety must be in (0, 1], got {safety}")
     p, b = state.particles, state.bonds
     n_p = p.capacity
     real = np.asarray(b.i < b.j)
     i, j = np.asarray(b.i)[real], np.asarray(b.j)[real]
+
+    def per_particle(x: np.ndarray) -> np.ndarray:
+        return np.bincount(i, x, minlength=n_p) + np.bincount(j, x, minlength=n_p)
+
     k_b = np.maximum(np.asarray(b.normal_stiffness), np.asarray(b.shear_stiffness))[real]
-    k_b = k_b * np.asarray(b.area)[real] + 2.0 * mat.contact_stiffness
-    k = np.bincount(i, k_b, minlength=n_p) + np.bincount(j, k_b, minlength=n_p)
+    k = per_particle(k_b * np.asarray(b.area)[real] + 2.0 * mat.contact_stiffness)
     k = np.maximum(k, 2.0 * mat.contact_stiffness)
+    n_e = b.elem_point_i.shape[1]  # each element has the bond's dashpots eta_n, eta_s
+    c = per_particle(n_e * np.maximum(np.asarray(b.damping_n), np.asarray(b.damping_s))[real])
     act = np.asarray(p.active)
-    m = np.asarray(p.mass)
-    m_rot = np.minimum(m, np.asarray(p.inertia) / np.asarray(p.bound_radius) ** 2)
-    return safety * float(np.min(np.sqrt(2.0 * m_rot[act] / k[act])))
+    m, inertia = np.asarray(p.mass)[act], np.asarray(p.inertia)[act]
+    ell = np.asarray(p.bound_radius)[act]
+    m_rot = np.minimum(m, inertia / ell**2)
+    omega2 = float(np.max(2.0 * k[act] / m_rot))
+    gamma_b = float(np.max(2.0 * c[act] / m_rot)) if dashpots else 0.0
+    gamma_c = 0.0 if mat.restitution >= 1 or not dashpots else max(contact_damping(state, mat))
+    gamma_c *= 1.0 + float(np.max(m * ell**2 / inertia))
+    return safety * mode_time_step_limit(omega2, gamma_c + 0.5 * gamma_b)
 
 
 def make_run_params(state: SimState, mat: Material, dt: float, skin: float):
     """:class:`jaxgran.state.Params` of an interface scene: no gravity, contact law with
     ``K_n = E_c T``, ``K_t = K_n / stiffness_ratio``, dashpots for ``restitution``; walls
     have ``wall_friction`` (``contact_friction`` where it is nan)."""
-    m = np.asarray(state.particles.mass)[np.asarray(state.particles.active)]
-    m_eff = 0.5 * float(np.median(m))
-    k_n = mat.contact_stiffness
-    k_t = k_n / mat.stiffness_ratio
+    g_n, g_t = contact_damping(state, mat)
     return make_params(
-        normal_stiffness=k_n,
-        tangential_stiffness=k_t,
+        normal_stiffness=mat.contact_stiffness,
+        tangential_stiffness=mat.contact_stiffness / mat.stiffness_ratio,
         friction=mat.contact_friction,
         wall_friction=None if math.isnan(mat.wall_friction) else mat.wall_friction,
-        normal_damping=damping_from_restitution(mat.restitution, k_n, m_eff),
-        tangential_damping=damping_from_restitution(mat.restitution, k_t, m_eff),
+        normal_damping=g_n,
+        tangential_damping=g_t,
         gravity=(0.0, 0.0),
         dt=dt,
         skin=skin,
