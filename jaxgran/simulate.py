@@ -368,6 +368,12 @@ def simulate(
         for key, val in rec.items():
             series.setdefault(key, []).append(val)
         done += seg_steps
+        # simulated time and kinetic energy: runs that stop on a criterion (settling, a
+        # post-peak drop) end before the bar does, and these show how close they are
+        bar.set_postfix_str(
+            f"t={float(rec['time'][-1]):.4g} s, KE={float(rec['kinetic_energy'][-1]):.3g} J",
+            refresh=False,
+        )
         bar.update(seg_steps)
         if (k + 1) % frame_every == 0 or k == n_seg - 1:
             frames.append(frame_of(state, params))

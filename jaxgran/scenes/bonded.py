@@ -291,6 +291,14 @@ def stable_dt(particles: Particles, bonds: Bonds, material: Material, safety: fl
     ``safety <= 1``, without the large blanket margin that
     :func:`jaxgran.integrate.stable_time_step` needs because it knows only K_n and not the
     number of neighbours (0.5 here gives about twice its step).
+
+    The contact dashpots are not counted. With Table 1's ``G_n = 2529.8`` 1/s a contact's
+    damping rate ``G_n (1 + m l^2 / I)`` (:func:`jaxgran.integrate.critical_time_step`) moves
+    the limit ``2 / (Gamma + sqrt(Gamma^2 + Omega^2))`` by 0.1-0.3 %, and the 100-cell disc
+    with them is measured stable up to 2.44 times this bound (2.51 without;
+    ``benchmarks/TIMESTEP_RESULTS.md``). A much larger ``normal_damping`` needs a smaller
+    ``safety``; the interface scenes, whose element dashpots are strong, count theirs
+    (:func:`jaxgran.scenes.interface.stable_dt`).
     """
     if not 0 < safety <= 1:
         raise ValueError(f"safety must be in (0, 1], got {safety}")

@@ -139,7 +139,7 @@ def pour(cfg: Config, *, progress: bool = True, frame_every: int = 5):
         frame_every=frame_every,
         callback=settled,
         progress=progress,
-        desc="deposit",
+        desc="deposit (stops once settled)",
     )
     return result, params, peak[0]
 
