@@ -167,24 +167,19 @@ def test_direct_tension_is_linear_to_a_brittle_peak(tension):
 
 def _element_openings(final: dict) -> tuple[np.ndarray, np.ndarray]:
     """Opening ``u_n`` (m) of every element of the live interfaces of a run file's final
-    state (as :func:`jaxgran.interface.interface_kinematics`), and which of them failed."""
-    b, pos, ang = final["bonds"], np.asarray(final["pos"]), np.asarray(final["angle"])
-    act = np.asarray(final["active"], bool)
-    i, j = np.asarray(b["i"]), np.asarray(b["j"])
-    real = i < j
-    i, j = i[real], j[real]
-    live = act[i] & act[j]
+    state (:func:`jaxgran.interface.interface_kinematics` on the stored arrays), and which of
+    them failed."""
+    from types import SimpleNamespace
 
-    def rotate(v, a):
-        c, s = np.cos(a), np.sin(a)
-        return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
+    import jax.numpy as jnp
 
-    a_i, a_j = ang[i], ang[j]
-    normal = rotate(np.asarray(b["normal_i"])[real], a_i + 0.5 * (a_j - a_i - b["theta0"][real]))
-    x_i = pos[i][:, None] + rotate(np.asarray(b["elem_point_i"])[real], a_i[:, None])
-    x_j = pos[j][:, None] + rotate(np.asarray(b["elem_point_j"])[real], a_j[:, None])
-    opening = np.sum((x_j - x_i) * normal[:, None], axis=-1)[live]
-    return opening, np.isfinite(np.asarray(b["elem_break_time"])[real][live])
+    b = final["bonds"]
+    p = SimpleNamespace(**{k: jnp.asarray(final[k]) for k in ("pos", "angle", "active")})
+    keys = ("i", "j", "normal_i", "theta0", "elem_point_i", "elem_point_j")
+    kin = itf.interface_kinematics(p, SimpleNamespace(**{k: jnp.asarray(b[k]) for k in keys}))
+    live = np.asarray(kin["live"])
+    failed = np.isfinite(np.asarray(b["elem_break_time"]))[live]
+    return np.asarray(kin["u_n"])[live], failed
 
 
 @pytest.fixture(scope="module")
