@@ -41,6 +41,17 @@ def mode_time_step_limit(omega2: float, gamma: float) -> float:
     return float(2.0 / (gamma + np.sqrt(gamma**2 + omega2)))
 
 
+def contact_dashpot_rate(particles: Particles, damping: float) -> float:
+    """Largest rate (1/s) at which one contact's dashpot ``G m_e`` (``G = damping``, 1/s)
+    damps the velocity of its contact point among the active particles: ``G (1 +
+    lambda_max)`` with ``lambda = m l^2 / I`` (l = bounding radius; see
+    :func:`critical_time_step`)."""
+    act = np.asarray(particles.active)
+    lam = np.asarray(particles.mass) * np.asarray(particles.bound_radius) ** 2
+    lam = lam[act] / np.asarray(particles.inertia)[act]
+    return float(damping) * (1.0 + float(np.max(lam)))
+
+
 def critical_time_step(particles: Particles, params: Params, dashpots: bool = True) -> float:
     """Stability limit of the explicit scheme (s) for one contact between two bodies, with
     its spring and its dashpots.
@@ -76,8 +87,7 @@ def critical_time_step(particles: Particles, params: Params, dashpots: bool = Tr
     k = float(params.normal_stiffness)
     omega2 = 2.0 * k / float(m_rot.min())
     damping = max(float(params.normal_damping), float(params.tangential_damping), 0.0)
-    damping = damping if dashpots else 0.0
-    gamma = damping * (1.0 + float(np.max(m * ell**2 / inertia)))
+    gamma = contact_dashpot_rate(particles, damping) if dashpots else 0.0
     return mode_time_step_limit(omega2, gamma)
 
 

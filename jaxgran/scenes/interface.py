@@ -58,7 +58,7 @@ from .. import geometry as geo
 from .. import interface as itf
 from ..bonds import attach_to_walls
 from ..contact import damping_from_restitution
-from ..integrate import mode_time_step_limit
+from ..integrate import contact_dashpot_rate, mode_time_step_limit
 from ..state import SimState, make_params, make_state, make_walls, particles_from_polygons, replace
 from . import bonded as bd
 from .limits import COUNT_OR_AUTO, Checked
@@ -424,7 +424,7 @@ def stable_dt(state: SimState, mat: Material, safety: float = 1.0, dashpots: boo
       damp the half-step velocity, so they count half in the criterion ``(Omega dt / 2)^2 +
       (Gamma_c + Gamma_b / 2) dt <= 1``.
     * Contact dashpots (:func:`contact_damping`): one contact's rate, ``Gamma_c = max(G_n,
-      G_t) (1 + max m l^2 / I)`` (:func:`jaxgran.integrate.critical_time_step`); they take
+      G_t) (1 + max m l^2 / I)`` (:func:`jaxgran.integrate.contact_dashpot_rate`); they take
       over from the element dashpots as the interfaces fail.
 
     With the element dashpots of ``damping_ratio = 0.3`` the dashpots set most of the
@@ -455,8 +455,7 @@ def stable_dt(state: SimState, mat: Material, safety: float = 1.0, dashpots: boo
     m_rot = np.minimum(m, inertia / ell**2)
     omega2 = float(np.max(2.0 * k[act] / m_rot))
     gamma_b = float(np.max(2.0 * c[act] / m_rot)) if dashpots else 0.0
-    gamma_c = 0.0 if mat.restitution >= 1 or not dashpots else max(contact_damping(state, mat))
-    gamma_c *= 1.0 + float(np.max(m * ell**2 / inertia))
+    gamma_c = contact_dashpot_rate(p, max(contact_damping(state, mat))) if dashpots else 0.0
     return safety * mode_time_step_limit(omega2, gamma_c + 0.5 * gamma_b)
 
 
