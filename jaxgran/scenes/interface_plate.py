@@ -174,12 +174,17 @@ def _fragments(state, split_bridges: bool = True) -> list[np.ndarray]:
     """Particle index sets of the fragments, largest first: particles linked by bonds with
     a bonded element, and with ``split_bridges`` (default) not through a single chain of
     bonds only (:func:`jaxgran.analysis.fragments`: the two halves of a split disc that a
-    thread of bonded grains still joins are two fragments)."""
+    thread of bonded grains still joins are two fragments). Particles taken out of the run
+    are in none; the indices are particle slots."""
     b = state.bonds
-    n = int(np.asarray(state.particles.active).sum())
+    active = np.asarray(state.particles.active, bool)
     keep = np.asarray(b.intact) & np.asarray(b.i < b.j)
     i, j = np.asarray(b.i)[keep], np.asarray(b.j)[keep]
-    return an.fragments(i, j, n, split_bridges=split_bridges)
+    # slots, not a count of the active particles: a particle taken out of the run
+    # (interface.eject_escaping) keeps its slot, and the slots after it keep theirs
+    live = active[i] & active[j]
+    frags = an.fragments(i[live], j[live], active.size, split_bridges=split_bridges)
+    return [f for f in frags if active[f].all()]
 
 
 def axis_profile(probe: dict, cfg: Config) -> dict:
