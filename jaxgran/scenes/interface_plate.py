@@ -9,7 +9,7 @@ default is the mesh because the stress field inside the disc is what this scene 
 a packing of discs at solid fraction 0.7 carries the load along its own force chains, and
 its axis stress scatters from -0.4 to 1.7 of the disc solution between packings (0.63 on
 average over 32 seeds), while the mesh reads 0.96 +- 0.04 (docs/speed_vs_accuracy.md
-section 4); the discs are 2.9x cheaper per step. With the gypsum-like material of
+section 4); the discs are 3.0x cheaper per step. With the gypsum-like material of
 :mod:`jaxgran.scenes.interface` (plane stress, slab thickness T). Two frictional plates
 close at ``strain_rate x D`` in total; the run stops once the force has fallen below
 ``drop_fraction x F_max``.
