@@ -354,6 +354,16 @@ def _fatal(err: np.ndarray) -> None:
     raise SimulationError(f"realisation {k}: {names}; {what}")
 
 
+def _bar_note(rec: dict) -> str:
+    """Progress-bar note after a segment: simulated time (s) and bonds broken so far (the
+    range over the realisations of a batched run)."""
+    t = float(np.max(rec["time"][-1]))
+    nb = np.atleast_1d(rec["n_broken"][-1])
+    lo, hi = int(np.min(nb)), int(np.max(nb))
+    broken = f"{lo}" if lo == hi else f"{lo}-{hi}"
+    return f"t={t:.4g} s, bonds broken={broken}"
+
+
 def drive(
     state: SimState,
     params: Params,
@@ -451,6 +461,7 @@ def drive(
         for key, val in rec.items():
             series.setdefault(key, []).append(val)
         done += seg
+        bar.set_postfix_str(_bar_note(rec), refresh=False)
         bar.update(seg)
         if (k + 1) % frame_every == 0:
             frames.append(frame(state))

@@ -101,6 +101,13 @@ def test_a_list_setting_is_checked_entry_by_entry():
     assert bx.Config(p_values=(50e6, 1e8)).p_values == (50e6, 1e8)
     with pytest.raises(ValueError, match=r"p_values=\(50000000.0, -1.0\) is refused: every entry"):
         bx.Config(p_values=(50e6, -1.0))
+    # a list, as a configuration read from JSON gives it, is the same setting as a tuple
+    from_json = oc.Config(snapshot_times=[0.0, 0.5])
+    assert from_json.snapshot_times == (0.0, 0.5)
+    assert from_json == oc.Config(snapshot_times=(0.0, 0.5))
+    hash(from_json)  # still usable as a static (hashed) configuration
+    with pytest.raises(ValueError, match=r"snapshot_times=\(0.0, -1.0\) is refused: every entry"):
+        oc.Config(snapshot_times=[0.0, -1.0])
 
 
 @pytest.mark.parametrize(

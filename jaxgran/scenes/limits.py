@@ -274,6 +274,12 @@ class Checked:
     LIMITS: ClassVar[dict[str, Rule]] = {}
 
     def __post_init__(self) -> None:
+        # a list (a configuration read from JSON) is taken as the tuple it stands for, so
+        # that the configuration stays hashable and the entries are checked one by one
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, list):
+                object.__setattr__(self, f.name, tuple(value))
         check(self)
 
     def relations(self) -> None:
