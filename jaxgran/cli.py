@@ -1,6 +1,7 @@
 """The ``jaxgran`` command: run a scene, redraw figures, print environment information.
 
 jaxgran run deposit [--out DIR] [--set key=value ...] [--quick] [--vtk] [--no-progress]
+jaxgran run deposit --config runs/deposit/summary.json --set seed=1   (repeat, varied)
 jaxgran run oedometer-voronoi --out DIR --resume   (continue an interrupted long run)
 jaxgran plot runs/deposit/run.h5 [--out DIR]
 jaxgran info
@@ -34,6 +35,14 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="KEY=VALUE",
         help="override a configuration value (repeatable)",
+    )
+    run_p.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="settings from a JSON file: a run's summary.json (repeat that run) or an "
+        "object of settings; --set applies on top",
     )
     run_p.add_argument("--quick", action="store_true", help="small, fast version")
     run_p.add_argument("--vtk", action="store_true", help="also write VTK files for ParaView")
@@ -134,7 +143,7 @@ def _run(args) -> int:
 
     _enable_x64(not args.float32)
     from .scenes import SCENES
-    from .scenes.base import apply_overrides, dumps, parse_sets
+    from .scenes.base import apply_overrides, dumps, parse_sets, read_config_file
 
     if args.scene not in SCENES:
         print(f"unknown scene {args.scene!r}; available: {', '.join(SCENES)}", file=sys.stderr)
@@ -144,6 +153,8 @@ def _run(args) -> int:
     try:
         if args.quick:
             cfg = dataclasses.replace(cfg, **mod.QUICK)
+        if args.config is not None:
+            cfg = apply_overrides(cfg, read_config_file(args.config, args.scene))
         cfg = apply_overrides(cfg, parse_sets(args.sets))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

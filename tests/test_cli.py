@@ -138,3 +138,33 @@ def test_list_settings_take_any_number_of_values():
     for bad in ("2e6,x", "", "()"):
         with pytest.raises(ValueError, match=f"confinements='{re.escape(bad)}'"):
             apply_overrides(ic.Config(), {"confinements": bad})
+
+
+def test_a_run_is_repeated_from_its_summary(deposit_run, tmp_path, capsys):
+    """``--config summary.json`` gives back the configuration of that run (every scene's, as
+    its summary stores it), ``--set`` applies on top of it, and a file that is not JSON or
+    the summary of another scene is refused before anything is built."""
+    import dataclasses
+
+    from jaxgran.scenes import SCENES
+    from jaxgran.scenes import deposit as dp
+    from jaxgran.scenes.base import apply_overrides, read_config_file
+
+    summary = deposit_run / "summary.json"
+    cfg = apply_overrides(dp.Config(), read_config_file(summary, "deposit"))
+    assert (cfg.n_cells, cfg.box_width, cfg.max_time) == (30, 0.12, 0.6)  # the run's --set
+    assert cfg.normal_stiffness == dp.QUICK["normal_stiffness"]  # and its --quick
+    for name, mod in SCENES.items():  # a summary's config (tuples, inf, nan) round-trips
+        quick = dataclasses.replace(mod.Config(), **mod.QUICK)
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"scene": name, "config": dataclasses.asdict(quick)}))
+        back = apply_overrides(mod.Config(), read_config_file(path, name))
+        assert json.dumps(dataclasses.asdict(back)) == json.dumps(dataclasses.asdict(quick))
+    # the file's max_time (0.6 s) is in force: min_time = 0.7 s on top breaks min < max
+    assert main(["run", "deposit", "--config", str(summary), "--set", "min_time=0.7"]) == 2
+    assert "min_time=0.7 and max_time=0.6" in capsys.readouterr().err
+    assert main(["run", "oedometer-cantor", "--config", str(summary)]) == 2
+    assert "summary of a 'deposit' run" in capsys.readouterr().err
+    (tmp_path / "bad.json").write_text("{not json")
+    assert main(["run", "deposit", "--config", str(tmp_path / "bad.json")]) == 2
+    assert "is not JSON" in capsys.readouterr().err

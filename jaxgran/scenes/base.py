@@ -91,6 +91,27 @@ def _scalar(v: str, kind: type) -> Any:
     return kind(v)
 
 
+def read_config_file(path: Path, scene: str) -> dict[str, Any]:
+    """Settings of ``scene`` from a JSON file: a run's ``summary.json`` (its ``config``, so a
+    run can be repeated or varied with ``--set``) or a plain object of settings (SI units,
+    as ``jaxgran settings SCENE`` lists them). ValueError, naming the file, where it cannot
+    be read, is not an object, or is the summary of another scene; unknown setting names are
+    refused later by :func:`apply_overrides`."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ValueError(f"cannot read the configuration file {path}: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} must hold a JSON object of settings or a run's summary")
+    if "config" in data and isinstance(data["config"], dict):
+        if data.get("scene", scene) != scene:
+            raise ValueError(f"{path} is the summary of a {data['scene']!r} run, not {scene!r}")
+        data = data["config"]
+    return data
+
+
 def parse_sets(items: list[str] | None) -> dict[str, str]:
     """``["a=1", "b=x"]`` -> ``{"a": "1", "b": "x"}`` with a clear error for bad items."""
     out = {}
