@@ -40,25 +40,26 @@ def _release_compiled_code():
 
 # The slowest scopes (a module, or a class where a module is split in classes: what
 # `pytest -n 2 --dist loadscope` hands to one worker), slowest first, from the suite's
-# durations on 2 CPU cores (2026-12-05, a cold compilation cache: the second half of the
-# notebooks 140 s, simulate 136 s, bem 125 s, calibration 101 s, the labtests' biaxial
-# block 98 s, interface scenes 89 s, the labtests' Brazilian disc 88 s, the first half of
-# the notebooks 84 s, breakage scenes 77 s, dsm 71 s, bonded scenes 58 s). They are queued
-# first so that no long scope starts last while the other worker sits idle; xdist's own
-# order (most tests first) put the notebooks last. Only the order changes: a stale list
-# costs time, never a test.
+# profile on 2 CPU cores (2026-12-06, a cold compilation cache: simulate 200 s, the second
+# half of the notebooks 183 s, bem 151 s, the first half of the notebooks 147 s, interface
+# scenes 132 s, calibration 115 s, the labtests' Brazilian disc 100 s, dsm 84 s, breakage
+# scenes 83 s, bonded scenes 75 s; the labtests' biaxial block, 122 s then, takes 52 s on
+# its own since its Jacobian is taken in forward mode). They are queued first so that no
+# long scope starts last while the other worker sits idle; xdist's own order (most tests
+# first) put the notebooks last.
+# Only the order changes: a stale list costs time, never a test.
 _SLOW_FIRST = (
-    "tests/test_notebooks.py::TestNotebooksSecondHalf",
     "tests/test_simulate.py",
+    "tests/test_notebooks.py::TestNotebooksSecondHalf",
     "tests/test_bem.py",
-    "tests/test_calibration.py",
-    "tests/test_labtests.py::TestBiaxialBlock",
-    "tests/test_interface_scenes.py",
-    "tests/test_labtests.py::TestBrazilianDisc",
     "tests/test_notebooks.py::TestNotebooksFirstHalf",
-    "tests/test_breakage_scenes.py",
+    "tests/test_interface_scenes.py",
+    "tests/test_calibration.py",
+    "tests/test_labtests.py::TestBrazilianDisc",
     "tests/test_dsm.py",
+    "tests/test_breakage_scenes.py",
     "tests/test_bonded_scenes.py",
+    "tests/test_labtests.py::TestBiaxialBlock",
 )
 
 
