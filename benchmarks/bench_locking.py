@@ -35,11 +35,13 @@ ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("dsm", "split-cell", "cross-cut", "mohr-coulomb")
 
 
-def one(method: str, seed: int) -> dict:
+def one(method: str, seed: int, sets: dict | None = None) -> dict:
     from jaxgran.breakage import metrics
     from jaxgran.scenes import oedometer_cantor as oc
+    from jaxgran.scenes.base import apply_overrides
 
     cfg = dataclasses.replace(oc.Config(), **MID, method=method, seed=seed)
+    cfg = apply_overrides(cfg, sets)
     t0 = time.perf_counter()
     settle, load, brk, info = oc.simulate_test(cfg)
     wall = time.perf_counter() - t0
@@ -65,7 +67,18 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--md", default=str(ROOT / "benchmarks" / "LOCKING_RESULTS.md"))
+    ap.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change a setting of the scene for every run (e.g. erosion=uniform)",
+    )
     args = ap.parse_args()
+    from jaxgran.scenes.base import parse_sets
+
+    sets = parse_sets(args.sets)
 
     import jax
 
@@ -75,7 +88,7 @@ def main() -> None:
     rows = []
     for m in methods:
         for s in seeds:
-            r = one(m, s)
+            r = one(m, s, sets)
             print(r, flush=True)
             rows.append(r)
     Path(args.md).with_suffix(".json").write_text(json.dumps(rows, indent=1))
@@ -84,13 +97,17 @@ def main() -> None:
         cmd += f" --seeds {args.seeds}"
     if methods != list(METHODS):
         cmd += f" --methods {','.join(methods)}"
+    cmd += "".join(f" --set {k}={v}" for k, v in sets.items())
+    default_md = ROOT / "benchmarks" / "LOCKING_RESULTS.md"
+    if Path(args.md).resolve() != default_md:
+        cmd += f" --md {os.path.relpath(Path(args.md).resolve(), ROOT)}"
     lines = [
         "# Locking counts per breakage method",
         "",
         f"`{cmd}` on {cpu_name()} ({os.cpu_count()} cores), jax {jax.__version__} on the "
         f"CPU, float64, {datetime.date.today().isoformat()}. Scene: `oedometer-cantor` with "
-        f"{json.dumps(MID)} (12 grains, weaker grains and a faster bar so that several break "
-        "in a minute); every method calibrated to the same Brazilian force (50 N). Repeat: "
+        f"{json.dumps(MID | sets)} (12 grains, weaker grains and a faster bar so that several "
+        "break in a minute); every method calibrated to the same Brazilian force (50 N). Repeat: "
         "an event whose parent is a fragment of an earlier event, cut within 15 deg of that "
         "event's plane; locking chain: 2 or more repeats in one lineage "
         "(`jaxgran.breakage.metrics.locking_effect`).",
