@@ -56,6 +56,8 @@ def one(method: str, seed: int, sets: dict | None = None) -> dict:
         "repeat_fraction": float(lock["repeat_fraction"]),
         "n_locking_chains": int(lock["n_locking_chains"]),
         "max_chain": int(lock["max_chain"]),
+        "n_candidates": int(lock["n_candidates"]),
+        "repeats_by_chance": float(lock["repeats_by_chance"]),
         "mass_lost_pct": 100.0 * lost / info["initial_mass"],
         "steps": int(load.steps),
         "wall_time_s": wall,
@@ -110,25 +112,35 @@ def main() -> None:
         "break in a minute); every method calibrated to the same Brazilian force (50 N). Repeat: "
         "an event whose parent is a fragment of an earlier event, cut within 15 deg of that "
         "event's plane; locking chain: 2 or more repeats in one lineage "
-        "(`jaxgran.breakage.metrics.locking_effect`).",
+        "(`jaxgran.breakage.metrics.locking_effect`). Candidates: events whose parent is a "
+        "fragment of an earlier event; by chance: the repeats expected if each candidate's "
+        "planes were turned (as one set) by a random angle, which counts that an event cut "
+        "by several planes matches more often.",
         "",
-        "| method | seed | events | repeats | repeat fraction | locking chains | longest "
-        "chain (events) | mass lost % | steps | wall (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| method | seed | events | candidates | repeats | by chance | repeat fraction | "
+        "locking chains | longest chain (events) | mass lost % | steps | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['method']} | {r['seed']} | {r['n_events']} | {r['n_repeats']} | "
-            f"{r['repeat_fraction']:.2f} | {r['n_locking_chains']} | {r['max_chain']} | "
+            f"| {r['method']} | {r['seed']} | {r['n_events']} | {r['n_candidates']} | "
+            f"{r['n_repeats']} | {r['repeats_by_chance']:.1f} | {r['repeat_fraction']:.2f} | "
+            f"{r['n_locking_chains']} | {r['max_chain']} | "
             f"{r['mass_lost_pct']:.2f} | {r['steps']} | {r['wall_time_s']:.0f} |"
         )
-    lines += ["", "| method | runs | events (sum) | repeats (sum) | locking chains (sum) |"]
-    lines += ["|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| method | runs | events (sum) | candidates (sum) | repeats (sum) | repeats by chance "
+        "(sum) | locking chains (sum) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for m in methods:
         sel = [r for r in rows if r["method"] == m]
         lines.append(
             f"| {m} | {len(sel)} | {sum(r['n_events'] for r in sel)} | "
-            f"{sum(r['n_repeats'] for r in sel)} | {sum(r['n_locking_chains'] for r in sel)} |"
+            f"{sum(r['n_candidates'] for r in sel)} | {sum(r['n_repeats'] for r in sel)} | "
+            f"{sum(r['repeats_by_chance'] for r in sel):.1f} | "
+            f"{sum(r['n_locking_chains'] for r in sel)} |"
         )
     write_table(args.md, lines)
 

@@ -80,6 +80,50 @@ def test_locking_detector_finds_repeated_parallel_cuts_in_one_lineage():
     assert metrics.locking_effect(evs[:3], min_repeats=1)["locked"]
 
 
+def _planes_ev(angles_deg, parent, frags):
+    """An event cut by several planes through the origin at ``angles_deg``."""
+    ev = _ev(0.0, parent, frags)
+    a = np.radians(np.asarray(angles_deg, float))
+    ends = np.stack([np.cos(a), np.sin(a)], axis=-1)
+    ev["planes"] = np.stack([np.zeros_like(ends), ends], axis=1)
+    return ev
+
+
+def test_repeats_by_chance_is_the_matching_share_of_rotations():
+    """The chance level of a repeat is the share of rotations of the later event's planes
+    (as one rigid set) that bring one of them within the tolerance of the earlier event's:
+    1/6 for one plane against one at 15 deg, 1/3 for a cross against one plane, 40/180 for
+    two planes 10 deg apart against one; and the repeat detector, run on the same pattern
+    turned by many random angles, matches in that share of the turns."""
+
+    def chance(later, earlier):
+        evs = [_planes_ev(earlier, 0, [1, 2]), _planes_ev(later, 1, [3, 4])]
+        res = metrics.locking_effect(evs)
+        assert res["n_candidates"] == 1
+        return res["repeats_by_chance"]
+
+    assert chance([37.0], [120.0]) == pytest.approx(1.0 / 6.0)
+    assert chance([37.0, 127.0], [5.0]) == pytest.approx(1.0 / 3.0)
+    assert chance([0.0, 10.0], [100.0]) == pytest.approx(40.0 / 180.0)
+    assert chance([0.0, 60.0, 120.0], [0.0, 90.0]) == pytest.approx(1.0)  # arcs cover all
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        earlier = rng.uniform(0.0, 180.0, rng.integers(1, 4))
+        pattern = rng.uniform(0.0, 180.0, rng.integers(1, 4))
+        p = chance(pattern, earlier)
+        turns = rng.uniform(0.0, 180.0, 4000)
+        hits = [
+            metrics.locking_effect(
+                [_planes_ev(earlier, 0, [1, 2]), _planes_ev(pattern + t, 1, [3, 4])]
+            )["n_repeats"]
+            for t in turns
+        ]
+        se = math.sqrt(max(p * (1.0 - p), 1e-12) / len(turns))
+        assert abs(np.mean(hits) - p) < 4.0 * se + 1e-12
+    # an event whose parent is no fragment of an earlier one is no candidate
+    assert metrics.locking_effect([_ev(90.0, 0, [1, 2]), _ev(90.0, 7, [8, 9])])["n_candidates"] == 0
+
+
 def test_force_chain_intensity_is_the_principal_stress_difference():
     s = np.array([[[-3.0, 0.0], [0.0, -1.0]], [[0.0, 2.0], [2.0, 0.0]]])
     assert metrics.force_chain_intensity(s).tolist() == pytest.approx([2.0, 4.0])

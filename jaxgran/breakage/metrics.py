@@ -167,9 +167,18 @@ def locking_effect(
     Repeats are chained through generations; a chain of at least ``min_repeats`` repeats
     (i.e. ``min_repeats + 1`` parallel cuts in one lineage) is a locking chain.
 
+    An event with several planes matches by chance more often than one with a single plane
+    (two planes against two match within 15 deg about half the time), so counts of
+    methods that cut differently are compared with ``repeats_by_chance``: over the
+    *candidates* (events whose parent is a fragment of an earlier event), the sum of the
+    probability that the candidate's planes, turned as one rigid set by an angle drawn
+    uniformly, come within the tolerance of a plane of the earlier event (exact for that
+    null model: the measure of the union of the ``n_k x n_j`` angle intervals that match).
+
     Returns ``n_repeats``, ``repeat_fraction`` (of all events), ``chains`` (lists of event
-    indices, root first), ``n_locking_chains``, ``locked`` (any locking chain), and
-    ``max_chain`` (most parallel cuts in one lineage).
+    indices, root first), ``n_locking_chains``, ``locked`` (any locking chain),
+    ``max_chain`` (most parallel cuts in one lineage), ``n_candidates`` and
+    ``repeats_by_chance``.
     """
     by_fragment: dict[int, int] = {}
     for k, ev in enumerate(events):
@@ -184,9 +193,14 @@ def locking_effect(
         return bool(np.any(np.minimum(diff, 180.0 - diff) <= angle_tolerance))
 
     prev: dict[int, int] = {}  # event -> the earlier event it repeats
+    n_candidates, by_chance = 0, 0.0
     for k, ev in enumerate(events):
         j = by_fragment.get(int(ev.get("parent_uid", -1)))
-        if j is not None and j < k and parallel(angles[k], angles[j]):
+        if j is None or j >= k:
+            continue
+        n_candidates += 1
+        by_chance += _chance_of_parallel(angles[k], angles[j], angle_tolerance)
+        if parallel(angles[k], angles[j]):
             prev[k] = j
     chains = []
     ends = set(prev) - set(prev.values())
@@ -204,7 +218,24 @@ def locking_effect(
         "n_locking_chains": len(locking),
         "locked": bool(locking),
         "max_chain": max((len(c) for c in chains), default=1 if n else 0),
+        "n_candidates": n_candidates,
+        "repeats_by_chance": by_chance,
     }
+
+
+def _chance_of_parallel(a: np.ndarray, b: np.ndarray, tolerance: float) -> float:
+    """Probability that the planes ``a`` (deg), turned together by an angle uniform in
+    ``[0, 180)``, come within ``tolerance`` (deg) of a plane ``b``: the measure of the
+    union of the intervals ``b_m - a_i +- tolerance`` on the circle of 180 deg, over 180."""
+    if a.size == 0 or b.size == 0:
+        return 0.0
+    if tolerance >= 90.0:
+        return 1.0
+    start = np.sort(((b[None, :] - a[:, None]).ravel() - tolerance) % 180.0)
+    # arcs of one length 2 x tolerance: between two consecutive starts (around the circle)
+    # the arc of the first covers min(length, gap), and no earlier arc reaches further
+    gap = np.diff(np.concatenate([start, start[:1] + 180.0]))
+    return float(np.sum(np.minimum(gap, 2.0 * tolerance)) / 180.0)
 
 
 # ---------------------------------------------------------------------------- force chains
