@@ -111,6 +111,8 @@ def summarize_run(run_dir: str | Path) -> dict[str, Any]:
         "plane_counts": hist["counts"].tolist(),
         "locking_chains": lock["n_locking_chains"],
         "locking_repeat_fraction": lock["repeat_fraction"],
+        "locking_repeats": lock["n_repeats"],
+        "locking_repeats_by_chance": lock["repeats_by_chance"],
         "n_fragments": int(sum(len(np.atleast_1d(e["fragment_uids"])) for e in events)),
         "finite": summary.get("finite"),
         "escaped": summary.get("escaped"),
@@ -137,9 +139,9 @@ def compare(run_dirs: Sequence[str | Path]):
     rows = [summarize_run(d) for d in run_dirs]
     head = (
         "| run | method | events | fragments | split % | frag % | chip % | mass lost % | "
-        "plane max freq | dominant (deg) | locking chains | d10 (cm) | d50 (cm) | "
-        "finite | escaped | KE peak max (J) | KE decay median (s) | wall (s) |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "plane max freq | dominant (deg) | locking chains | repeats (by chance) | d10 (cm) | "
+        "d50 (cm) | finite | escaped | KE peak max (J) | KE decay median (s) | wall (s) |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
@@ -151,7 +153,9 @@ def compare(run_dirs: Sequence[str | Path]):
             f"{fmt(pct.get('splitting'))} | {fmt(pct.get('fragmentation'))} | "
             f"{fmt(pct.get('chipping'))} | {fmt(r['mass_lost_fraction'], 100, 3)} | "
             f"{r['planes_max_frequency']} | {r['planes_dominant_deg']:.0f} | "
-            f"{r['locking_chains']} | {fmt(r['d10_m'], 100, 2)} | {fmt(r['d50_m'], 100, 2)} | "
+            f"{r['locking_chains']} | {r['locking_repeats']} "
+            f"({r['locking_repeats_by_chance']:.1f}) | "
+            f"{fmt(r['d10_m'], 100, 2)} | {fmt(r['d50_m'], 100, 2)} | "
             f"{r['finite']} | {r['escaped']} | {fmt(r['ke_peak_max_J'], 1, 3)} | "
             f"{fmt(r['ke_decay_median_s'], 1, 4)} | {fmt(r['wall_time_s'], 1, 0)} |"
         )
