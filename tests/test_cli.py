@@ -165,6 +165,11 @@ def test_a_run_is_repeated_from_its_summary(deposit_run, tmp_path, capsys):
     assert "min_time=0.7 and max_time=0.6" in capsys.readouterr().err
     assert main(["run", "oedometer-cantor", "--config", str(summary)]) == 2
     assert "summary of a 'deposit' run" in capsys.readouterr().err
+    # the oedometer scenes and brazilian-dsm store the module's name in their summaries
+    (tmp_path / "cantor.json").write_text(
+        json.dumps({"scene": "oedometer_cantor", "config": {"seed": 4}})
+    )
+    assert read_config_file(tmp_path / "cantor.json", "oedometer-cantor") == {"seed": 4}
     (tmp_path / "bad.json").write_text("{not json")
     assert main(["run", "deposit", "--config", str(tmp_path / "bad.json")]) == 2
     assert "is not JSON" in capsys.readouterr().err

@@ -106,8 +106,10 @@ def read_config_file(path: Path, scene: str) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ValueError(f"{path} must hold a JSON object of settings or a run's summary")
     if "config" in data and isinstance(data["config"], dict):
-        if data.get("scene", scene) != scene:
-            raise ValueError(f"{path} is the summary of a {data['scene']!r} run, not {scene!r}")
+        # some scenes store their module's name (oedometer_cantor for oedometer-cantor)
+        stored = str(data.get("scene", scene))
+        if stored.replace("_", "-") != scene.replace("_", "-"):
+            raise ValueError(f"{path} is the summary of a {stored!r} run, not {scene!r}")
         data = data["config"]
     return data
 
