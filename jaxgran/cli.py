@@ -142,6 +142,7 @@ def _run(args) -> int:
     import dataclasses
 
     _enable_x64(not args.float32)
+    from .errors import SceneError
     from .scenes import SCENES
     from .scenes.base import apply_overrides, dumps, parse_sets, read_config_file
 
@@ -172,10 +173,8 @@ def _run(args) -> int:
             extra["checkpoint_minutes"] = args.checkpoint_minutes
     try:
         summary = mod.run(cfg, out, progress=not args.no_progress, vtk=args.vtk, **extra)
-    except ValueError as exc:
-        if "checkpoint" not in str(exc):
-            raise
-        print(f"error: {exc}", file=sys.stderr)
+    except SceneError as exc:  # settings the scene cannot be built from; other errors keep
+        print(f"error: {exc}", file=sys.stderr)  # their traceback
         return 2
     print(dumps(summary))
     print(f"outputs in {out}/")

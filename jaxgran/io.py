@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 import h5py
 import numpy as np
 
+from .errors import SceneError
 from .geometry import spheropolygon_outline
 
 if TYPE_CHECKING:
@@ -810,7 +811,7 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[Any, Any]:
     with open(path, "rb") as fh:
         blob = pickle.load(fh)
     if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a jaxgran checkpoint of format {CHECKPOINT_FORMAT}")
+        raise SceneError(f"{path}: not a jaxgran checkpoint of format {CHECKPOINT_FORMAT}")
     return blob["key"], blob["payload"]
 
 
@@ -821,7 +822,7 @@ def load_checkpoint(path: str | os.PathLike, key: Any) -> Any:
     this unpickles."""
     saved_key, payload = read_checkpoint(path)
     if saved_key != key:
-        raise ValueError(
+        raise SceneError(
             f"{path}: the checkpoint belongs to a run with other settings; delete it or run "
             "without resume"
         )

@@ -74,6 +74,25 @@ def test_bad_setting_is_refused(capsys, tmp_path):
     assert err.startswith("error: ") and "is not an HDF5 file" in err
 
 
+def test_a_scene_that_cannot_be_built_is_one_error_line(capsys, tmp_path, monkeypatch):
+    """Settings every rule accepts but no scene can be built from (two cells: none within
+    the circumdiameter range) end as an ``error:`` line and exit code 2 before anything is
+    compiled; any other ValueError is an internal error and keeps its traceback."""
+    out = tmp_path / "dep"
+    assert main(["run", "deposit", "--quick", "--set", "n_cells=2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no Voronoi cell within the circumdiameter range")
+    assert not (out / "summary.json").exists()
+    from jaxgran.scenes import SCENES
+
+    def broken(*args, **kwargs):
+        raise ValueError("an internal fault")
+
+    monkeypatch.setattr(SCENES["deposit"], "run", broken)
+    with pytest.raises(ValueError, match="an internal fault"):
+        main(["run", "deposit", "--quick", "--out", str(out)])
+
+
 def test_resume_is_refused_where_a_scene_has_no_checkpoints(capsys):
     assert main(["run", "deposit", "--resume"]) == 2
     assert "no checkpoints" in capsys.readouterr().err

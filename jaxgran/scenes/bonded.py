@@ -45,6 +45,7 @@ from jax import Array
 from .. import analysis as _an
 from .. import geometry as geo
 from ..bonds import Bonds, attach_to_walls, make_bonds
+from ..errors import SceneError
 from ..integrate import step
 from ..partition import make_grid
 from ..simulate import Record, record
@@ -130,7 +131,7 @@ def specimen_from_cells(cells: list[np.ndarray], area: float, material: Material
         try:
             cores.append(geo.offset_polygon(c, r))
         except ValueError as exc:
-            raise ValueError(
+            raise SceneError(
                 f"cell {k} is too thin for the sphero-radius {r:.3g} m; lower "
                 "sphero_fraction or use Lloyd iterations for rounder cells"
             ) from exc
@@ -150,7 +151,7 @@ def disc_specimen(
     """Voronoi disc of ``diameter`` (m) with ``n_cells`` cells (boundary an
     ``n_boundary``-gon with a vertex at each pole)."""
     if n_boundary % 4:
-        raise ValueError("n_boundary must be a multiple of 4 (a vertex at each pole)")
+        raise SceneError("n_boundary must be a multiple of 4 (a vertex at each pole)")
     cells = geo.voronoi_disc(
         0.5 * diameter,
         n_cells,
@@ -434,7 +435,7 @@ def make_control(
     for g, idx in enumerate(groups):
         idx = np.asarray(idx, int)
         if idx.size == 0:
-            raise ValueError(f"gauge {g} holds no particle")
+            raise SceneError(f"gauge {g} holds no particle")
         weights[g, idx] = 1.0 / idx.size
     return Control(
         external_force=jnp.asarray(ext, fd),

@@ -50,6 +50,7 @@ import numpy as np
 
 from .. import analysis as an
 from .. import ensemble as ens
+from ..errors import SceneError
 from ..integrate import servo_gain_for
 from ..state import WALL_FIXED, WALL_SERVO, WALL_VELOCITY, box_walls, replace
 from . import bonded as bd
@@ -545,7 +546,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         summary.update(envelope_fits(summary["shear"], ucs))
     summary["wall_time_s"] = wall_time
     if first_run is None:
-        raise ValueError("nothing to run: enable unconfined, tension or give p_values")
+        raise SceneError("nothing to run: enable unconfined, tension or give p_values")
     r0, params = first_run
     summary = write_outputs(out_dir, SCENE, cfg, r0, params, summary, vtk=vtk)
     from .. import io

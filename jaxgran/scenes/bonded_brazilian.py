@@ -34,6 +34,7 @@ import numpy as np
 
 from .. import analysis as an
 from .. import ensemble as ens
+from ..errors import SceneError
 from ..state import WALL_VELOCITY, wall
 from . import bonded as bd
 from .base import write_outputs
@@ -103,7 +104,7 @@ def build(cfg: Config, seeds: list[int] | None = None, materials=None) -> Setup:
     if len(seeds) == 1 and len(mats) > 1:
         seeds = seeds * len(mats)
     if len(seeds) != len(mats):
-        raise ValueError("give one material per seed (or one seed for a sweep)")
+        raise SceneError("give one material per seed (or one seed for a sweep)")
     nb = n_boundary_for(cfg.n_cells)
     cache: dict[int, bd.Specimen] = {}
     for s in seeds:

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import ensemble as ens
+from ..errors import SceneError
 from ..state import replace
 from . import bonded as bd
 from . import bonded_biaxial as bx
@@ -132,9 +133,9 @@ def beam_specimen(cfg: Config, seed: int, mat) -> bd.Specimen:
             cfg.length, cfg.depth, cfg.n_cells, seed, mat, lloyd_iterations=cfg.lloyd_iterations
         )
     if cfg.clamp != "straight":
-        raise ValueError(f"clamp must be 'straight' or 'cells', got {cfg.clamp!r}")
+        raise SceneError(f"clamp must be 'straight' or 'cells', got {cfg.clamp!r}")
     if not 0.0 < cfg.clamp_length < cfg.length:
-        raise ValueError(
+        raise SceneError(
             f"clamp_length must be in (0, length) = (0, {cfg.length}) m, got {cfg.clamp_length}"
         )
     from .. import geometry as geo
@@ -183,7 +184,7 @@ def build(cfg: Config, seeds: list[int], modulus: float | None = None) -> Setup:
         clamp = pos0[:, 0] < cfg.clamp_length  # with a straight clamp: its own cells
         tip = pos0[:, 0] > cfg.length - cfg.tip_length
         if not clamp.any() or not tip.any():
-            raise ValueError("no cell in the clamp or tip region; enlarge clamp/tip_length")
+            raise SceneError("no cell in the clamp or tip region; enlarge clamp/tip_length")
         fixed = np.zeros(state.particles.capacity, bool)
         fixed[:n] = clamp
         state = replace(state, particles=replace(state.particles, fixed=jnp.asarray(fixed)))

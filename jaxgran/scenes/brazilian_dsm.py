@@ -44,6 +44,7 @@ from ..breakage.dsm import (
     critical_load,
 )
 from ..contact import damping_from_restitution
+from ..errors import SceneError
 from ..integrate import check_time_step, stable_time_step
 from ..partition import make_grid
 from ..simulate import simulate
@@ -125,7 +126,7 @@ def build(cfg: Config, rotation: float = 0.0):
 
     ``rotation`` (rad) turns the grain about its centre (0: a vertex at each pole)."""
     if cfg.n_vertices < 3 or cfg.n_vertices % 2:
-        raise ValueError("n_vertices must be even (a vertex at each pole) and >= 4")
+        raise SceneError("n_vertices must be even (a vertex at each pole) and >= 4")
     r = cfg.sphero_radius
     core = geo.regular_polygon(cfg.n_vertices, cfg.disc_radius - r, math.pi / 2 + rotation)
     parts = particles_from_polygons(

@@ -38,6 +38,7 @@ from .. import geometry as geo
 from ..breakage.averaged import METHODS, make_breakage
 from ..breakage.criteria import breakage_type
 from ..breakage.dsm import calibrate_eps, critical_load
+from ..errors import SceneError
 from ..integrate import stable_time_step
 from ..io import world_vertices_np
 from ..partition import make_grid
@@ -105,7 +106,7 @@ def build(cfg: Config, configuration: str, load_factor: float):
     for a in angles:
         k = (a - 90.0) / step
         if abs(k - round(k)) > 1e-9:
-            raise ValueError(f"load angle {a} deg is not at a vertex (every {step} deg)")
+            raise SceneError(f"load angle {a} deg is not at a vertex (every {step} deg)")
     parts = particles_from_polygons(
         [core], r, cfg.areal_density, capacity=8, vertex_capacity=cfg.n_vertices
     )
@@ -220,7 +221,7 @@ def run_table(cfg: Config) -> list[dict]:
     for conf in cfg.configurations.split(","):
         for method in cfg.methods.split(","):
             if method.strip() not in METHODS:
-                raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
+                raise SceneError(f"unknown method {method!r}; choose from {METHODS}")
             out.append(load_test(cfg, conf.strip(), method.strip()))
     return out
 

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import geometry as geo
+from ..errors import SceneError
 from ..integrate import check_time_step, stable_time_step
 from ..partition import make_grid
 from ..simulate import simulate
@@ -92,7 +93,7 @@ def make_cells(cfg: Config) -> list[np.ndarray]:
         core = core + [0.0, (cfg.spread - 1.0) * cen[1]]
         out.append(core + [0.0, cfg.sphero_radius + 0.002])
     if not out:
-        raise ValueError("no Voronoi cell within the circumdiameter range; adjust cell_size")
+        raise SceneError("no Voronoi cell within the circumdiameter range; adjust cell_size")
     return out
 
 

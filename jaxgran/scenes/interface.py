@@ -58,6 +58,7 @@ from .. import geometry as geo
 from .. import interface as itf
 from ..bonds import attach_to_walls
 from ..contact import damping_from_restitution
+from ..errors import SceneError
 from ..integrate import contact_dashpot_rate, mode_time_step_limit
 from ..state import SimState, make_params, make_state, make_walls, particles_from_polygons, replace
 from . import bonded as bd
@@ -342,7 +343,7 @@ def make_specimen(cfg, region, mat: Material) -> Specimen:
     if cfg.particles == "discs":
         return discs
     if cfg.particles != "voronoi":
-        raise ValueError(f"particles must be 'discs' or 'voronoi', got {cfg.particles!r}")
+        raise SceneError(f"particles must be 'discs' or 'voronoi', got {cfg.particles!r}")
     n = cfg.n_cells if cfg.n_cells > 0 else discs.n_particles
     return voronoi_specimen(region, n, cfg.seed, sphero_fraction=cfg.sphero_fraction)
 

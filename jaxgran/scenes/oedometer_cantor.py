@@ -43,6 +43,7 @@ from .. import energy
 from .. import geometry as geo
 from ..breakage import metrics
 from ..breakage.averaged import make_breakage, method_name
+from ..errors import SceneError
 from ..integrate import check_time_step, critical_time_step, mode_time_step_limit
 from ..partition import make_grid
 from ..simulate import frame_of, simulate
@@ -371,7 +372,7 @@ def _check_precision(saved_x64: bool, path) -> None:
     cast to float32 without a word)."""
     if bool(saved_x64) != _x64():
         want = "float64 (without --float32)" if saved_x64 else "float32 (--float32)"
-        raise ValueError(f"{path}: the checkpoint was written in {want}; resume it so")
+        raise SceneError(f"{path}: the checkpoint was written in {want}; resume it so")
 
 
 def checkpoint_key(cfg, build_fn=None) -> dict:
@@ -397,7 +398,7 @@ def checkpointed_test(cfg, out_dir: Path, progress, checkpoint_minutes, resume, 
 def checkpoint_path(out_dir: Path, minutes: float) -> Path | None:
     """``out_dir/checkpoint.pkl``, or None when ``minutes`` is 0 (no checkpoints)."""
     if not (math.isfinite(minutes) and minutes >= 0.0):
-        raise ValueError(f"checkpoint_minutes must be finite and >= 0, got {minutes}")
+        raise SceneError(f"checkpoint_minutes must be finite and >= 0, got {minutes}")
     return Path(out_dir) / "checkpoint.pkl" if minutes > 0 else None
 
 
@@ -493,11 +494,11 @@ def fork_checkpoint(src, dst, cfg_src, cfg_dst, build_fn=None) -> dict:
     from .. import io
 
     if dataclasses.replace(cfg_dst, method=cfg_src.method) != cfg_src:
-        raise ValueError("fork_checkpoint: the configurations differ in more than the method")
+        raise SceneError("fork_checkpoint: the configurations differ in more than the method")
     saved = io.load_checkpoint(src, checkpoint_key(cfg_src, build_fn))
     ctx = dict(saved["context"])
     if ctx["brk"].events or ctx["n_events"]:
-        raise ValueError(
+        raise SceneError(
             f"fork_checkpoint: {src} has {len(ctx['brk'].events)} breakage events; runs of "
             "other methods share only the stretch before the first breakage"
         )
