@@ -15,7 +15,8 @@ excluded), and realisation-steps per second. The baselines are
   (:func:`jaxgran.ensemble.run_segments_naive`), the state before the fix.
 
 Realisations beyond ``--distinct`` reuse the first ones' specimens (cost does not depend on
-the seed). Float64 unless ``--float32``.
+the seed). Float64 unless ``--float32``. Each time is the median of ``--repeats`` calls
+after a compiling one.
 
     python benchmarks/bench_ensemble.py                          # K = 1, 8, 32, 64
     python benchmarks/bench_ensemble.py --cells 30 --steps 200 --ks 1,8 --naive
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 import time
 
@@ -33,13 +35,17 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
-def _timed(fn, *args):
+def _timed(fn, *args, repeats: int = 1):
+    """Median wall time (s) of ``repeats`` calls after one that compiles and warms up."""
     import jax
 
     jax.block_until_ready(fn(*args))  # compile and warm up
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    return time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def main(argv=None) -> int:
@@ -50,6 +56,7 @@ def main(argv=None) -> int:
     ap.add_argument("--distinct", type=int, default=8, help="distinct Voronoi seeds")
     ap.add_argument("--seq-max", type=int, default=4, help="sequential runs actually timed")
     ap.add_argument("--naive", action="store_true", help="also time the naive vmap")
+    ap.add_argument("--repeats", type=int, default=3, help="timed calls; the median is kept")
     ap.add_argument("--float32", action="store_true")
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args(argv)
@@ -77,17 +84,20 @@ def main(argv=None) -> int:
     single = lambda s, c: ens._run_single(s, p, c, g, n_rec, record_every)
     t_one = []
     for i in range(min(args.seq_max, len(ready))):
-        t_one.append(_timed(single, ready[i], controls[i]))
+        t_one.append(_timed(single, ready[i], controls[i], repeats=args.repeats))
     t_single = sum(t_one) / len(t_one)
 
     rows = []
     from machine import cpu_name  # benchmarks/machine.py
 
-    facts = f"{cpu_name()}, {os.cpu_count()} cores, jax {jax.__version__}"
+    facts = (
+        f"{cpu_name()}, {os.cpu_count()} cores, jax {jax.__version__}, "
+        f"{time.strftime('%Y-%m-%d')}, median of {args.repeats} timed calls"
+    )
     for k in ks:
         states, cs = ens.stack(pick(k)), ens.stack(pick_c(k))
         batch = lambda s, c: ens.run_segments(s, p, c, g, n_rec, record_every)
-        t_b = _timed(batch, states, cs)
+        t_b = _timed(batch, states, cs, repeats=args.repeats)
         row = {
             "K": k,
             "cells": args.cells,
@@ -102,7 +112,7 @@ def main(argv=None) -> int:
         }
         if args.naive:
             naive = lambda s, c: ens.run_segments_naive(s, p, c, g, n_rec, record_every)
-            t_n = _timed(naive, states, cs)
+            t_n = _timed(naive, states, cs, repeats=args.repeats)
             row["naive_vmap_s"] = t_n
             row["naive_vmap_specimens_per_s"] = k / t_n
         rows.append(row)
