@@ -10,6 +10,7 @@ so the analysis and the figures can be redone without simulating (``--analyse-on
     python benchmarks/run_bonded_acceptance.py sweep        # sigma_t/B_n, S/K_n calibration
     python benchmarks/run_bonded_acceptance.py p-drift --seed 2 --pressures 100e6  # p vs rate
     python benchmarks/run_bonded_acceptance.py p-drift --rates 10 --servo-max-speed 50  # cap
+    python benchmarks/run_bonded_acceptance.py p-drift --rates 10 --record-every 10  # a burst
 
 Results go to ``<out>/<part>.json`` (default ``benchmarks/bonded_acceptance``), figures to
 ``docs/`` (``hoek_brown.png``, ``cantilever.png``, ``bursts.png``, ``bonded_sweeps.png``).
@@ -461,6 +462,8 @@ def p_drift(args) -> dict:
     cap = float(args.servo_max_speed) or bx.Config().servo_max_speed
     if args.servo_max_speed:
         tag += f"_cap{cap:g}"
+    if args.record_every != 50:
+        tag += f"_rec{args.record_every}"
     path = Path(args.out) / f"p_drift_s{seed}_p{p / 1e6:g}{tag}.json"
     rows = json.loads(path.read_text())["runs"] if path.exists() else []
     done = {r["strain_rate"] for r in rows}
@@ -481,13 +484,54 @@ def p_drift(args) -> dict:
              "steps": shear.steps + iso.steps,
              "p_max_relative_deviation_to_peak": m["p_max_relative_deviation_to_peak"],
              "p_max_relative_deviation": m["p_max_relative_deviation"],
-             **{k: m[k] for k in keys}}
+             **{k: m[k] for k in keys},
+             **_largest_excursion(shear.realisation(0), p, cfg.thickness)}
         )  # fmt: skip
         print(json.dumps(rows[-1], default=float), flush=True)
         _dump(path, {"seed": seed, "p_target_Pa": p, "runs": rows})
     out = {"seed": seed, "p_target_Pa": p, "runs": rows}
     _dump(path, out)
     return out
+
+
+def _largest_excursion(run, p_target: float, thickness: float) -> dict:
+    """Where p strays most before the peak: p's largest and rms deviation in the elastic
+    part (before the first broken bond), and around the largest excursion the axial and
+    lateral stresses before it and at it and the bonds broken in between (MPa, records)."""
+    from jaxgran.scenes import bonded_biaxial as bx
+
+    s_ax, s_lat, height, _ = bx.stresses(run.series, thickness)
+    p = 0.5 * (s_ax + s_lat)
+    q = 0.5 * (s_ax - s_lat)
+    e1 = 1.0 - height / height[0]
+    nb = np.asarray(run.series["n_broken"])
+    t = np.asarray(run.series["time"], float)
+    k = int(np.argmax(q))
+    dev = (p - p_target) / p_target
+    idx = np.arange(p.size)
+    pre = (e1 > 0.05 * e1[-1]) & (idx <= k)
+    elastic = pre & (nb == 0)
+    j = int(idx[pre][np.argmax(np.abs(dev[pre]))])
+    before = int(idx[(idx < j) & (nb < nb[j])].max(initial=0))  # last record before the burst
+    return {
+        "record_interval_s": float(t[1] - t[0]),
+        "p_max_relative_deviation_elastic": float(np.abs(dev[elastic]).max(initial=0.0)),
+        "p_rms_relative_deviation_elastic": float(np.sqrt(np.mean(dev[elastic] ** 2)))
+        if elastic.any()
+        else float("nan"),
+        "excursion": {
+            "relative_deviation": float(dev[j]),
+            "axial_strain": float(e1[j]),
+            "time_after_burst_start_s": float(t[j] - t[before]),
+            "bonds_broken_before_and_at": [int(nb[before]), int(nb[j])],
+            "sigma_axial_before_and_at_MPa": [float(s_ax[before] / 1e6), float(s_ax[j] / 1e6)],
+            "sigma_lateral_before_and_at_MPa": [
+                float(s_lat[before] / 1e6),
+                float(s_lat[j] / 1e6),
+            ],
+            "sigma_axial_lowest_in_between_MPa": float(s_ax[before : j + 1].min() / 1e6),
+        },
+    }
 
 
 # ------------------------------------------------------------------------------ main
