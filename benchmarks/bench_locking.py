@@ -78,9 +78,12 @@ def main() -> None:
         help="change a setting of the scene for every run (e.g. erosion=uniform)",
     )
     args = ap.parse_args()
-    from jaxgran.scenes.base import parse_sets
+    from jaxgran.scenes import oedometer_cantor as oc
+    from jaxgran.scenes.base import apply_overrides, parse_sets
 
     sets = parse_sets(args.sets)
+    typed = apply_overrides(oc.Config(), sets)  # checked now, and echoed with their types
+    set_values = {k: getattr(typed, k) for k in sets}
 
     import jax
 
@@ -108,10 +111,10 @@ def main() -> None:
         "",
         f"`{cmd}` on {cpu_name()} ({os.cpu_count()} cores), jax {jax.__version__} on the "
         f"CPU, float64, {datetime.date.today().isoformat()}. Scene: `oedometer-cantor` with "
-        f"{json.dumps(MID | sets)} (12 grains, weaker grains and a faster bar so that several "
-        "break in a minute); every method calibrated to the same Brazilian force (50 N). Repeat: "
-        "an event whose parent is a fragment of an earlier event, cut within 15 deg of that "
-        "event's plane; locking chain: 2 or more repeats in one lineage "
+        f"{json.dumps(MID | set_values)} (12 grains, weaker grains and a faster bar so that "
+        "several break in a minute); every method calibrated to the same Brazilian force "
+        "(50 N). Repeat: an event whose parent is a fragment of an earlier event, cut within "
+        "15 deg of that event's plane; locking chain: 2 or more repeats in one lineage "
         "(`jaxgran.breakage.metrics.locking_effect`). Candidates: events whose parent is a "
         "fragment of an earlier event; by chance: the repeats expected if each candidate's "
         "planes were turned (as one set) by a random angle, which counts that an event cut "
