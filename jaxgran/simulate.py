@@ -280,6 +280,7 @@ def simulate(
     checkpoint: Callable[[dict], None] | None = None,
     checkpoint_every_s: float = 600.0,
     resume: dict | None = None,
+    progress_note: Callable[[dict[str, np.ndarray]], str] | None = None,
 ) -> RunResult:
     """Run ``n_steps`` steps (rounded up to whole segments) with host checks between segments.
 
@@ -295,6 +296,9 @@ def simulate(
             used from the next segment on, without recompiling. ``RunResult.params`` holds
             the last ones.
         prepared: the state already carries a pair list and forces (skip :func:`prepare`).
+        progress_note: ``progress_note(last_records) -> str``, called after each segment's
+            callback, is shown after the simulated time and kinetic energy on the progress
+            bar (how close a run that stops on a criterion is to stopping).
         checkpoint: ``checkpoint(payload)`` is called after a segment's callback once
             ``checkpoint_every_s`` seconds (wall clock) have passed since the start or the
             last call; ``payload`` holds what ``resume`` needs (``state``, ``params``,
@@ -370,24 +374,25 @@ def simulate(
         done += seg_steps
         # simulated time and kinetic energy: runs that stop on a criterion (settling, a
         # post-peak drop) end before the bar does, and these show how close they are
-        bar.set_postfix_str(
-            f"t={float(rec['time'][-1]):.4g} s, KE={float(rec['kinetic_energy'][-1]):.3g} J",
-            refresh=False,
-        )
-        bar.update(seg_steps)
+        note = f"t={float(rec['time'][-1]):.4g} s, KE={float(rec['kinetic_energy'][-1]):.3g} J"
         if (k + 1) % frame_every == 0 or k == n_seg - 1:
             frames.append(frame_of(state, params))
+        stop = False
         if callback is not None:
             out = callback(state, rec)
             if len(out) == 3:
                 state, stop, params = out
             else:
                 state, stop = out
-            if stop:
-                stopped = True
-                if (k + 1) % frame_every != 0:
-                    frames.append(frame_of(state, params))
-                break
+        if progress_note is not None:
+            note += ", " + progress_note(rec)
+        bar.set_postfix_str(note, refresh=False)
+        bar.update(seg_steps)
+        if stop:
+            stopped = True
+            if (k + 1) % frame_every != 0:
+                frames.append(frame_of(state, params))
+            break
         if checkpoint is not None and k + 1 < n_seg:
             now = _time.perf_counter()
             if now - t_saved >= checkpoint_every_s:

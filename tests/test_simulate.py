@@ -107,6 +107,32 @@ def test_cell_count_max_is_what_the_broad_phase_checks(pile):
         assert bool(int(err) & ERR_CELL_OVERFLOW) == (cap < need)
 
 
+def test_progress_note_follows_the_callback_and_shows_on_the_bar(pile, capsys):
+    """``progress_note`` runs after each segment's callback (it sees what the callback
+    counted) and its text reaches the progress bar; the bar changes no number."""
+    parts, walls, params, grid = pile
+    seen, notes = [], []
+
+    def callback(state, rec):
+        seen.append(float(rec["time"][-1]))
+        return state, len(seen) == 2  # stop after the second segment
+
+    def note(rec):
+        notes.append(len(seen))
+        return f"segments checked={len(seen)}"
+
+    kw = dict(record_every=100, records_per_segment=5, callback=callback)
+    state = make_state(parts, walls, pair_capacity=400)
+    shown = simulate(state, params, grid, n_steps=1500, progress=True, progress_note=note, **kw)
+    assert notes == [1, 2] and shown.stopped_early and shown.steps == 1000
+    assert "segments checked=2" in capsys.readouterr().err
+    seen.clear()
+    quiet = simulate(state, params, grid, n_steps=1500, progress=False, **kw)
+    np.testing.assert_array_equal(
+        np.asarray(shown.state.particles.pos), np.asarray(quiet.state.particles.pos)
+    )
+
+
 def test_segments_do_not_recompile(pile):
     from jaxgran import simulate as sim
 

@@ -141,6 +141,10 @@ def pour(cfg: Config, *, progress: bool = True, frame_every: int = 5):
         callback=settled,
         progress=progress,
         desc="deposit (stops once settled)",
+        progress_note=lambda rec: (
+            f"KE/peak={float(rec['kinetic_energy'][-1]) / max(peak[0], 1e-300):.1e} "
+            f"(settled below {cfg.ke_stop_ratio:.0e} after {cfg.min_time:g} s)"
+        ),
     )
     return result, params, peak[0]
 
