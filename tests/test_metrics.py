@@ -144,6 +144,24 @@ def test_kinetic_energy_spike_peak_and_exponential_decay():
     assert sp["decay_s"] == pytest.approx(tau + 0.01, abs=2e-3)
 
 
+def test_each_event_gets_its_own_spike_when_the_next_comes_within_the_window():
+    """Two events 0.25 s apart, the second's spike ten times the first's: with a 0.5 s
+    window the first event keeps its own peak and decay (its window ends where the second
+    event begins); two events at the same time share one spike."""
+    t = np.linspace(0.0, 2.0, 2001)
+    base, tau = 1e-3, 0.02
+    ke = np.full_like(t, base)
+    for te, amp in ((0.5, 4e-3), (0.75, 4e-2)):
+        ke += np.where(t > te + 0.005, amp * np.exp(-(t - te - 0.005) / tau), 0.0)
+        ke[(t > te) & (t <= te + 0.005)] += amp
+    first, second = metrics.kinetic_energy_spikes(t, ke, [0.5, 0.75], window=0.5)
+    assert first["peak"] == pytest.approx(base + 4e-3, rel=1e-3)
+    assert first["rise_s"] <= 0.25 and first["decay_s"] == pytest.approx(tau + 0.005, abs=2e-3)
+    assert second["peak"] == pytest.approx(base + 4e-2, rel=1e-2)
+    together = metrics.kinetic_energy_spikes(t, ke, [0.75, 0.75], window=0.5)
+    assert together[0] == together[1] == second
+
+
 def test_quiet_speeds_leave_out_the_window_after_each_event():
     """A steady 0.5 mm/s with 2 mm/s bursts right after two events: the quiet records are
     those outside the windows, all at 0.5 mm/s, none above 1 mm/s; a burst outside a

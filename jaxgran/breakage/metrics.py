@@ -308,15 +308,20 @@ def kinetic_energy_spikes(
     ``peak`` the largest KE in ``(t_e, t_e + window]`` (J), ``ratio = peak / baseline``,
     ``rise_s`` the time from ``t_e`` to the peak and ``decay_s`` the time after the peak for
     the excess ``KE - baseline`` to fall below ``1/e`` of ``peak - baseline`` (NaN if it
-    does not within the window).
+    does not within the window). The window ends at the next later event, if that comes
+    first, so that an event is not given the spike of the one after it (events at the same
+    time share one spike).
     """
     t = np.asarray(time, float).ravel()
     ke = np.asarray(kinetic_energy, float).ravel()
+    times = np.asarray(event_times, float).ravel()
     out = []
-    for te in np.asarray(event_times, float).ravel().tolist():
+    for te in times.tolist():
         before = np.flatnonzero(t <= te)
         base = float(ke[before[-1]]) if before.size else float(ke[0])
-        win = np.flatnonzero((t > te) & (t <= te + window))
+        later = times[times > te]
+        end = min(te + window, float(later.min())) if later.size else te + window
+        win = np.flatnonzero((t > te) & (t <= end))
         if win.size == 0:
             out.append(
                 {
