@@ -498,11 +498,11 @@ def _largest_excursion(run, p_target: float, thickness: float) -> dict:
     """Where p strays most before the peak: p's largest and rms deviation in the elastic
     part (before the first broken bond), and around the largest excursion the axial and
     lateral stresses before it and at it and the bonds broken in between (MPa, records)."""
+    from jaxgran import analysis as an
     from jaxgran.scenes import bonded_biaxial as bx
 
     s_ax, s_lat, height, _ = bx.stresses(run.series, thickness)
-    p = 0.5 * (s_ax + s_lat)
-    q = 0.5 * (s_ax - s_lat)
+    p, q = an.pq_invariants(s_ax, s_lat)
     e1 = 1.0 - height / height[0]
     nb = np.asarray(run.series["n_broken"])
     t = np.asarray(run.series["time"], float)
