@@ -182,6 +182,18 @@ def test_external_force_and_damping_of_the_control_are_exact(brazil):
     np.testing.assert_allclose(vel, v0[act] * math.exp(-c * dt * n), rtol=1e-9)
 
 
+def test_biaxial_pair_capacity_floor_is_kept_and_the_fit_used_above_it():
+    """``run`` starts the constant-p tests at the pair capacity the unconfined test of the
+    same blocks grew to (so they do not grow and compile again): the floor is a floor."""
+    cfg = dataclasses.replace(bx.Config(), width=0.03, height=0.06, n_cells=40)
+    fitted = bx.build(cfg, [(0, 0.0)]).states[0].contacts.capacity
+    floored = bx.build(cfg, [(0, 0.0)], pair_capacity=2 * fitted).states[0]
+    assert floored.contacts.capacity == 2 * fitted
+    assert floored.contacts.pairs.shape == (2 * fitted, 2)
+    low = bx.build(cfg, [(0, 0.0)], pair_capacity=fitted // 2).states[0]
+    assert low.contacts.capacity == fitted
+
+
 def test_biaxial_holds_p_constant_while_shearing():
     cfg = dataclasses.replace(
         bx.Config(),

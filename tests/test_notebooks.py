@@ -78,9 +78,21 @@ def _run_notebook(name: str, tmp_path: Path) -> None:
     env = dict(os.environ)
     env["JAX_PLATFORMS"] = "cpu"
     env["TMPDIR"] = str(tmp_path)  # the notebooks' tempfile outputs land in pytest's folder
+    km = _kernel_manager(tmp_path)
+    try:
+        _execute(nb, name, km, env)
+    finally:
+        # A client given its kernel manager leaves the kernel running; each kernel holds
+        # 1-3 GB (JAX and the notebook's arrays) until pytest exits.
+        if km.has_kernel:
+            km.shutdown_kernel(now=True)
+    assert not km.is_alive(), f"{name}: the kernel outlived its notebook"
+
+
+def _execute(nb, name: str, km, env: dict) -> None:
     client = nbclient.NotebookClient(
         nb,
-        km=_kernel_manager(tmp_path),
+        km=km,
         timeout=CELL_TIMEOUT_S,
         startup_timeout=120,
         allow_errors=False,
@@ -93,6 +105,9 @@ def _run_notebook(name: str, tmp_path: Path) -> None:
         client.execute(env=env)
     except CellExecutionError as exc:
         pytest.fail(f"{name} failed:\n{exc}")
+    finally:
+        if client.kc is not None:
+            client.kc.stop_channels()
     wall = time.perf_counter() - t0
     code = [c for c in nb.cells if c.cell_type == "code"]
     for cell in code:

@@ -138,9 +138,13 @@ def _walls(cfg: Config, mat: bd.Material, p: float) -> list[dict]:
     return w
 
 
-def build(cfg: Config, members: list[tuple[int, float]], *, bond_walls=()) -> Setup:
+def build(
+    cfg: Config, members: list[tuple[int, float]], *, bond_walls=(), pair_capacity: int = 0
+) -> Setup:
     """One state per ``(seed, p)`` member, padded to common capacities; walls in servo mode
-    with target p (Pa). ``bond_walls`` ties walls to the specimen (tension)."""
+    with target p (Pa). ``bond_walls`` ties walls to the specimen (tension).
+    ``pair_capacity`` is a floor on the pair capacity: an earlier test of the same blocks
+    passes the capacity it grew to, so that this one does not grow (and recompile) again."""
     mat = bd.material_from(cfg)
     cache: dict[int, bd.Specimen] = {}
     for s, _ in members:
@@ -163,7 +167,7 @@ def build(cfg: Config, members: list[tuple[int, float]], *, bond_walls=()) -> Se
     skin = cfg.skin_fraction * h
     params = bd.make_bonded_params(mat, dt, skin)
     grid = bd.grid_around(states, max(cfg.width, cfg.height), skin)
-    cap = bd.fit_pair_capacity(states, skin)
+    cap = max(bd.fit_pair_capacity(states, skin), int(pair_capacity))
     states = [bd.with_pair_capacity(s, cap) for s in states]
     gauges, gauge0 = [], []
     b = cfg.band_fraction
@@ -239,14 +243,25 @@ def stresses(series: dict, thickness: float):
 
 
 def isotropic_then_shear(
-    cfg: Config, seeds: list[int], p_values, *, progress: bool = False, setup: Setup | None = None
+    cfg: Config,
+    seeds: list[int],
+    p_values,
+    *,
+    progress: bool = False,
+    setup: Setup | None = None,
+    pair_capacity: int = 0,
 ):
     """Stage 1 (isotropic servo compression to p) and stage 2 (constant-p shearing) for
     every (seed, p); returns ``(shear EnsembleResult, isotropic EnsembleResult, Setup,
-    members)``."""
+    members)``. ``pair_capacity``: floor on the pair capacity (see :func:`build`)."""
     members = [(s, float(p)) for s in seeds for p in p_values]
     # s3 = 2 p - s1 turns tensile at low p: the walls hold the block by wall bonds (§4.3)
-    setup = setup or build(cfg, members, bond_walls=(bd.BOTTOM, bd.LEFT, bd.RIGHT, bd.TOP))
+    setup = setup or build(
+        cfg,
+        members,
+        bond_walls=(bd.BOTTOM, bd.LEFT, bd.RIGHT, bd.TOP),
+        pair_capacity=pair_capacity,
+    )
     dt = float(setup.params.dt)
     state = _as_batch(setup.states)
     controls = _as_batch(
@@ -476,6 +491,11 @@ def envelope_fits(shear: list[dict], unconfined_strengths=(), *, means: bool = F
 # ------------------------------------------------------------------------------ run
 
 
+def _pair_capacity(res) -> int:
+    """The pair capacity a run ended with (after any regrowth)."""
+    return int(res.state.contacts.pairs.shape[-2])
+
+
 def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
     out_dir = Path(out_dir)
     seeds = [cfg.seed + k for k in range(max(1, cfg.realisations))]
@@ -493,8 +513,12 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
                 summary[f"{prefix}{key}_std"] = s["std"]
 
     ucs = []
+    # the pair capacity the unconfined test grew to: the constant-p tests of the same blocks
+    # start there instead of growing (and compiling) again; tension does not need it
+    pairs = 0
     if cfg.unconfined:
         res, setup = unconfined(cfg, seeds, progress=progress)
+        pairs = _pair_capacity(res)
         wall_time += res.wall_time_s
         per = [
             measure_elastic(res.realisation(k), setup.gauge0[k], T, 1.0) for k in range(res.size)
@@ -516,7 +540,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         curves["tension"] = res.realisation(0)
     if cfg.p_values:
         shear, iso, setup, members = isotropic_then_shear(
-            cfg, seeds, cfg.p_values, progress=progress
+            cfg, seeds, cfg.p_values, progress=progress, pair_capacity=pairs
         )
         wall_time += shear.wall_time_s + iso.wall_time_s
         per = [
