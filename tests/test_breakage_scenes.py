@@ -274,7 +274,7 @@ def test_compare_tallies_what_the_runs_did(quick_split, tmp_path):
     run_dir = tmp_path / "split-cell"
     write_outputs(
         run_dir,
-        "oedometer_cantor",
+        oc.SCENE,
         QUICK_SPLIT,
         load,
         brk.params,

@@ -117,8 +117,27 @@ def test_a_finished_run_is_recognised_by_its_configuration(deposit_run):
         finished_summary(deposit_run, "deposit", dataclasses.replace(cfg, seed=cfg.seed + 1))
         is None
     )
-    assert finished_summary(deposit_run, "oedometer_voronoi", cfg) is None
+    assert finished_summary(deposit_run, "oedometer-voronoi", cfg) is None
     assert finished_summary(deposit_run / "nowhere", "deposit", cfg) is None
+
+
+def test_oedometer_summaries_carry_the_cli_name_and_older_ones_still_match(tmp_path):
+    """Every scene's summary names it as ``jaxgran run`` does; summaries written before
+    2026-12-06 named the oedometers by module (``oedometer_cantor``) and still count."""
+    import dataclasses
+
+    from jaxgran.scenes import SCENES
+    from jaxgran.scenes import oedometer_cantor as oc
+    from jaxgran.scenes import oedometer_voronoi as ov
+    from jaxgran.scenes.base import finished_summary
+
+    assert SCENES[oc.SCENE] is oc and SCENES[ov.SCENE] is ov
+    cfg = oc.Config()
+    old = {"scene": "oedometer_cantor", "config": dataclasses.asdict(cfg)}
+    (tmp_path / "summary.json").write_text(json.dumps(old, default=float))
+    found = finished_summary(tmp_path, oc.SCENE, cfg)
+    assert found is not None and found["scene"] == "oedometer_cantor"
+    assert finished_summary(tmp_path, ov.SCENE, cfg) is None
 
 
 def test_a_finished_runs_figures_are_found_after_the_folder_moved(

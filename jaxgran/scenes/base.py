@@ -91,6 +91,12 @@ def _scalar(v: str, kind: type) -> Any:
     return kind(v)
 
 
+def same_scene(a: str, b: str) -> bool:
+    """Whether two scene names are the same scene: summaries written before 2026-12-06 name
+    the oedometers by their module (``oedometer_cantor``), the CLI by ``oedometer-cantor``."""
+    return a.replace("_", "-") == b.replace("_", "-")
+
+
 def read_config_file(path: Path, scene: str) -> dict[str, Any]:
     """Settings of ``scene`` from a JSON file: a run's ``summary.json`` (its ``config``, so a
     run can be repeated or varied with ``--set``) or a plain object of settings (SI units,
@@ -106,9 +112,9 @@ def read_config_file(path: Path, scene: str) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ValueError(f"{path} must hold a JSON object of settings or a run's summary")
     if "config" in data and isinstance(data["config"], dict):
-        # some scenes store their module's name (oedometer_cantor for oedometer-cantor)
+        # summaries written before 2026-12-06 name the oedometers by module (oedometer_cantor)
         stored = str(data.get("scene", scene))
-        if stored.replace("_", "-") != scene.replace("_", "-"):
+        if not same_scene(stored, scene):
             raise ValueError(f"{path} is the summary of a {stored!r} run, not {scene!r}")
         data = data["config"]
     return data
@@ -187,7 +193,7 @@ def finished_summary(out_dir: Path, scene: str, config: Any) -> dict | None:
         return None
     summary = json.loads(path.read_text())
     want = json.loads(json.dumps(dataclasses.asdict(config), default=float))
-    if summary.get("scene") != scene or summary.get("config") != want:
+    if not same_scene(str(summary.get("scene")), scene) or summary.get("config") != want:
         return None
     if "figures" in summary:
         summary["figures"] = [

@@ -59,7 +59,9 @@ from ..state import (
 from .base import contact_params, finished_summary, write_outputs
 from .limits import Checked, Range, require_less
 
-__all__ = ["Config", "QUICK", "build", "run", "simulate_test", "summarize"]
+__all__ = ["Config", "QUICK", "SCENE", "build", "run", "simulate_test", "summarize"]
+
+SCENE = "oedometer-cantor"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -529,7 +531,7 @@ def checkpoint_progress(path) -> dict:
     t_load = float(sim["state"].time) - float(ctx["t0"])
     brk = ctx["brk"]
     return {
-        "scene": key.get("build") or "oedometer_cantor",
+        "scene": key.get("build") or SCENE,
         "method": cfg["method"],
         "t_load_s": t_load,
         "load_time_s": float(cfg["load_time"]),
@@ -770,7 +772,7 @@ def run(
     ``out_dir`` (its summary.json has this configuration), its summary is returned as it is.
     The checkpoint is deleted at the end."""
     out_dir = Path(out_dir)
-    done = finished_summary(out_dir, "oedometer_cantor", cfg) if resume else None
+    done = finished_summary(out_dir, SCENE, cfg) if resume else None
     if done is not None:
         return done
     ckpt, (settle, load, brk, info) = checkpointed_test(
@@ -780,7 +782,7 @@ def run(
     out_dir.mkdir(parents=True, exist_ok=True)
     figs = figures(load, brk, info, cfg, out_dir)
     summary = write_outputs(
-        out_dir, "oedometer_cantor", cfg, load, brk.params, summary, events=brk.events, vtk=vtk
+        out_dir, SCENE, cfg, load, brk.params, summary, events=brk.events, vtk=vtk
     )
     summary["figures"] = list(summary.get("figures", [])) + figs
     summary["force_chains"] = info.get("force_chains")

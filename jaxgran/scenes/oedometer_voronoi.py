@@ -41,7 +41,9 @@ from . import oedometer_cantor as oc
 from .base import contact_params, finished_summary, write_outputs
 from .limits import Checked, Range
 
-__all__ = ["Config", "QUICK", "build", "run"]
+__all__ = ["Config", "QUICK", "SCENE", "build", "run"]
+
+SCENE = "oedometer-voronoi"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,7 +154,7 @@ def run(
 ):
     """As :func:`jaxgran.scenes.oedometer_cantor.run` (checkpoints included), for the
     Voronoi packing; the summary adds the PSD."""
-    done = finished_summary(Path(out_dir), "oedometer_voronoi", cfg) if resume else None
+    done = finished_summary(Path(out_dir), SCENE, cfg) if resume else None
     if done is not None:
         return done
     ckpt, (settle, load, brk, info) = oc.checkpointed_test(
@@ -174,7 +176,7 @@ def run(
     out_dir.mkdir(parents=True, exist_ok=True)
     figs = oc.figures(load, brk, info, cfg, out_dir)
     summary = write_outputs(
-        out_dir, "oedometer_voronoi", cfg, load, brk.params, summary, events=brk.events, vtk=vtk
+        out_dir, SCENE, cfg, load, brk.params, summary, events=brk.events, vtk=vtk
     )
     summary["figures"] = list(summary.get("figures", [])) + figs
     summary["force_chains"] = info.get("force_chains")
