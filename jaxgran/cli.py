@@ -77,7 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     cal.add_argument("--no-bem", action="store_true", help="skip the BEM check (analytic only)")
 
     cmp_p = sub.add_parser("compare", help="lay several runs side by side (table + figure)")
-    cmp_p.add_argument("runs", nargs="+", type=Path, help="run folders (with summary.json)")
+    cmp_p.add_argument(
+        "runs", nargs="+", type=Path, help="run folders (with summary.json and run.h5)"
+    )
     cmp_p.add_argument("--out", type=Path, default=Path("compare"), help="output folder")
 
     prog_p = sub.add_parser(
@@ -206,10 +208,11 @@ def _compare(args) -> int:
 
     from .compare import compare
 
-    missing = [str(r) for r in args.runs if not (r / "summary.json").exists()]
-    if missing:
-        print(f"error: no summary.json in {', '.join(missing)}", file=sys.stderr)
-        return 2
+    for name in ("summary.json", "run.h5"):  # compare reads the events from run.h5
+        missing = [str(r) for r in args.runs if not (r / name).exists()]
+        if missing:
+            print(f"error: no {name} in {', '.join(missing)}", file=sys.stderr)
+            return 2
     markdown, rows, fig = compare(args.runs)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "compare.md").write_text(markdown)

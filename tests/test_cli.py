@@ -211,3 +211,19 @@ def test_a_run_is_repeated_from_its_summary(deposit_run, tmp_path, capsys):
     (tmp_path / "bad.json").write_text("{not json")
     assert main(["run", "deposit", "--config", str(tmp_path / "bad.json")]) == 2
     assert "is not JSON" in capsys.readouterr().err
+
+
+def test_compare_names_the_file_a_run_folder_lacks(tmp_path, capsys):
+    """``jaxgran compare`` reads each run's summary.json and its events from run.h5: a folder
+    without either is one ``error:`` line naming the file (the stored benchmark folders keep
+    summary.json and figures but not run.h5)."""
+    only_summary = tmp_path / "summary_only"
+    only_summary.mkdir()
+    (only_summary / "summary.json").write_text(json.dumps({"scene": "oedometer-cantor"}))
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["compare", str(only_summary), "--out", str(tmp_path / "cmp")]) == 2
+    assert f"error: no run.h5 in {only_summary}" in capsys.readouterr().err
+    assert main(["compare", str(empty), str(only_summary)]) == 2
+    assert f"error: no summary.json in {empty}" in capsys.readouterr().err
+    assert not (tmp_path / "cmp").exists()
