@@ -809,7 +809,12 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[Any, Any]:
     import pickle
 
     with open(path, "rb") as fh:
-        blob = pickle.load(fh)
+        try:
+            blob = pickle.load(fh)
+        except Exception as exc:  # a truncated or foreign file: pickle raises many kinds
+            raise SceneError(
+                f"{path}: not a jaxgran checkpoint (it cannot be unpickled: {type(exc).__name__})"
+            ) from exc
     if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
         raise SceneError(f"{path}: not a jaxgran checkpoint of format {CHECKPOINT_FORMAT}")
     return blob["key"], blob["payload"]

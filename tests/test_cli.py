@@ -227,3 +227,22 @@ def test_compare_names_the_file_a_run_folder_lacks(tmp_path, capsys):
     assert main(["compare", str(empty), str(only_summary)]) == 2
     assert f"error: no summary.json in {empty}" in capsys.readouterr().err
     assert not (tmp_path / "cmp").exists()
+
+
+def test_progress_of_a_file_that_is_not_a_checkpoint_is_one_error_line(tmp_path, capsys):
+    """A truncated or foreign file given to ``jaxgran progress`` is named, not unpickled
+    into a traceback or an unrelated message."""
+    import pickle
+
+    bad = tmp_path / "checkpoint.pkl"
+    bad.write_bytes(b"garbage\n")
+    assert main(["progress", str(bad)]) == 2
+    assert "not a jaxgran checkpoint (it cannot be unpickled" in capsys.readouterr().err
+    half = tmp_path / "half.pkl"
+    half.write_bytes(pickle.dumps({"format": 0, "key": 1, "payload": list(range(100))})[:40])
+    assert main(["progress", str(half)]) == 2
+    assert "not a jaxgran checkpoint" in capsys.readouterr().err
+    other = tmp_path / "other.pkl"
+    other.write_bytes(pickle.dumps({"format": -1}))
+    assert main(["progress", str(other)]) == 2
+    assert "not a jaxgran checkpoint of format" in capsys.readouterr().err
