@@ -176,3 +176,14 @@ def test_quiet_speeds_leave_out_the_window_after_each_event():
     assert q["fraction_above"] == 0.0
     q = metrics.quiet_speeds(t, v, [2.0], window=0.5, limit=1e-3)
     assert q["fraction_above"] == pytest.approx(29 / (1001 - 49))
+    # the burst after 6.0 s lies after the first event: split there
+    assert q["n_before_first_event"] == 201 and q["fraction_above_before_first_event"] == 0.0
+    assert q["n_after_first_event"] == 1001 - 49 - 201
+    assert q["fraction_above_after_first_event"] == pytest.approx(29 / (1001 - 49 - 201))
+    # a stick-slip before any event counts before it; no event: everything is before
+    v[(t > 1.0) & (t < 1.1)] = 3e-3
+    q = metrics.quiet_speeds(t, v, [2.0], window=0.5, limit=1e-3)
+    assert q["fraction_above_before_first_event"] == pytest.approx(9 / 201)
+    q = metrics.quiet_speeds(t, v, [], window=0.5, limit=1e-3)
+    assert q["n_before_first_event"] == 1001 and q["n_after_first_event"] == 0
+    assert np.isnan(q["fraction_above_after_first_event"])

@@ -368,7 +368,12 @@ def quiet_speeds(
 
     The records at least ``window`` (s) after every event (and any time before the first)
     are the quiet ones; returns their count ``n``, ``median`` and ``p95`` speed (m/s), the
-    ``fraction_above`` ``limit`` (m/s, e.g. the bar speed), and the ``max``.
+    ``fraction_above`` ``limit`` (m/s, e.g. the bar speed), and the ``max``. The same count
+    and fraction are split at the first event (``n_before_first_event``,
+    ``fraction_above_before_first_event``, ``n_after_first_event``,
+    ``fraction_above_after_first_event``; NaN fractions where a part has no record): the
+    rearrangements of an intact packing under a moving bar are told from the aftermath of
+    breakage.
     """
     t = np.asarray(time, float).ravel()
     v = np.asarray(speed, float).ravel()
@@ -377,13 +382,20 @@ def quiet_speeds(
     for e in te.tolist():
         quiet &= ~((t > e) & (t < e + window))
     q = v[quiet]
+    nan = float("nan")
+    first = te.min() if te.size else np.inf
+    split = {}
+    for name, part in (("before", quiet & (t <= first)), ("after", quiet & (t > first))):
+        split[f"n_{name}_first_event"] = int(part.sum())
+        split[f"fraction_above_{name}_first_event"] = (
+            float(np.mean(v[part] > limit)) if part.any() else nan
+        )
     if q.size == 0:
-        nan = float("nan")
-        return {"n": 0, "median": nan, "p95": nan, "max": nan, "fraction_above": nan}
+        return {"n": 0, "median": nan, "p95": nan, "max": nan, "fraction_above": nan} | split
     return {
         "n": int(q.size),
         "median": float(np.median(q)),
         "p95": float(np.quantile(q, 0.95)),
         "max": float(q.max()),
         "fraction_above": float(np.mean(q > limit)),
-    }
+    } | split
