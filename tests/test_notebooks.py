@@ -83,7 +83,7 @@ def _run_notebook(name: str, tmp_path: Path) -> None:
         _execute(nb, name, km, env)
     finally:
         # A client given its kernel manager leaves the kernel running; each kernel holds
-        # 1-3 GB (JAX and the notebook's arrays) until pytest exits.
+        # 0.7-1.8 GB (JAX and the notebook's arrays) until pytest exits.
         if km.has_kernel:
             km.shutdown_kernel(now=True)
     assert not km.is_alive(), f"{name}: the kernel outlived its notebook"
