@@ -149,9 +149,7 @@ def pair_capacity_needed(contacts: Contacts) -> int:
     overflow keeps the largest count found; the largest over the realisations of a batch),
     at least once. The capacities are those repeated doubling reaches, so compiled shapes
     are shared, in one regrowth (one compilation) instead of one per doubling."""
-    return _doubled_to_hold(
-        int(contacts.pairs.shape[-2]), int(np.max(np.asarray(contacts.n_pairs)))
-    )
+    return _doubled_to_hold(int(contacts.capacity), int(np.max(np.asarray(contacts.n_pairs))))
 
 
 def cell_capacity_needed(grid: Grid, *states: SimState) -> int:
@@ -186,7 +184,7 @@ def grow_capacities(
         regrows.append(msg)
         log.info(msg)
     if err & ERR_PAIR_OVERFLOW:
-        c = start.contacts.pairs.shape[-2]
+        c = start.contacts.capacity
         new_c = pair_capacity_needed(overflowed.contacts)
         msg = f"pair capacity {c} exceeded; grown to {new_c}"
 

@@ -159,7 +159,8 @@ class Contacts(eqx.Module):
 
     @property
     def capacity(self) -> int:
-        return self.pairs.shape[0]
+        """Pair slots, also of a batch of pair lists (``pairs`` ``[..., C, 2]``)."""
+        return self.pairs.shape[-2]
 
 
 class Params(eqx.Module):

@@ -491,11 +491,6 @@ def envelope_fits(shear: list[dict], unconfined_strengths=(), *, means: bool = F
 # ------------------------------------------------------------------------------ run
 
 
-def _pair_capacity(res) -> int:
-    """The pair capacity a run ended with (after any regrowth)."""
-    return int(res.state.contacts.pairs.shape[-2])
-
-
 def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False) -> dict:
     out_dir = Path(out_dir)
     seeds = [cfg.seed + k for k in range(max(1, cfg.realisations))]
@@ -518,7 +513,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     pairs = 0
     if cfg.unconfined:
         res, setup = unconfined(cfg, seeds, progress=progress)
-        pairs = _pair_capacity(res)
+        pairs = res.state.contacts.capacity  # after any regrowth
         wall_time += res.wall_time_s
         per = [
             measure_elastic(res.realisation(k), setup.gauge0[k], T, 1.0) for k in range(res.size)
