@@ -18,7 +18,7 @@
       "seeds": [0, 1],                        # optional (default 0 .. K-1)
       "bonded-brazilian": {"n_cells": 30, "lab": {"max_strain": 0.045}},   # scene overrides
       "bonded-biaxial": {"n_cells": 30, "lab": {"fit_strains": [0.002, 0.008]}},
-      "adam": {"learning_rate": 0.05, "steps": 60}
+      "adam": {"learning_rate": 0.05, "steps": 60}     # optional "gradient": "reverse"
     }
 
 **Parameters** are optimised in log space in the dimensionless groups of paper 002
@@ -31,8 +31,10 @@ for stiffnesses up to 4x the initial ones, :mod:`jaxgran.labtests`).
 **Loss**: ``L = mean_f ((m_f - t_f) / u_f)^2``, the weighted relative misfit of the ensemble
 means ``m_f`` (mean over the K realisations) against the targets ``t_f`` with uncertainties
 ``u_f`` (equal to ``((m_f / t_f - 1) / (u_f / t_f))^2``: relative misfit over relative
-uncertainty). Gradients come from reverse mode through the whole lab tests
-(:func:`jaxgran.labtests.figures`), optimised with optax Adam; with ``--gauss-newton``
+uncertainty). Gradients come from automatic differentiation through the whole lab tests
+(:func:`jaxgran.labtests.figures`), optimised with optax Adam: by default in forward mode
+(one run that carries one tangent per free group), or in reverse mode with ``--gradient
+reverse`` (:data:`GRADIENTS`, :func:`make_functions`); with ``--gauss-newton``
 also by Levenberg-Marquardt on the Jacobian from forward mode (:func:`gauss_newton`, a few
 Jacobian evaluations instead of tens of gradient steps when there are few free groups); a
 gradient-free baseline (scipy Nelder-Mead on the same loss, :func:`nelder_mead`) runs with
@@ -233,11 +235,17 @@ def check_spec(spec: dict, scenes: Sequence[str], realisations: int) -> list[Tar
         except TypeError as exc:  # a key that is no setting of the scene
             raise ValueError(f"{scene}: {exc}") from None
     adam_opts = spec.get("adam", {})
-    extra = sorted(set(adam_opts) - {"learning_rate", "steps", "tol"})
+    extra = sorted(set(adam_opts) - {"learning_rate", "steps", "tol", "gradient"})
     if extra:
-        raise ValueError(f"adam: unknown option(s) {extra}; known: learning_rate, steps, tol")
-    for key in adam_opts:
+        raise ValueError(
+            f"adam: unknown option(s) {extra}; known: learning_rate, steps, tol, gradient"
+        )
+    for key in (k for k in adam_opts if k != "gradient"):
         _number("adam", adam_opts, key, positive=True)
+    if adam_opts.get("gradient", "forward") not in GRADIENTS:
+        raise ValueError(
+            f"adam: gradient must be one of {GRADIENTS}, got {adam_opts['gradient']!r}"
+        )
     return targets
 
 
@@ -423,16 +431,47 @@ def loss_of(means, problem: Problem):
     return jnp.mean(((means - t) / u) ** 2)
 
 
-def make_functions(problem: Problem):
+GRADIENTS = ("forward", "reverse")
+"""How :func:`make_functions` differentiates the loss. ``"forward"`` (the default): one run
+of every lab that carries one tangent per free group (``jax.jacfwd``), so its cost grows
+with the number of free groups (at most the six of :data:`GROUPS`) and it keeps no
+trajectory. ``"reverse"``: one forward and one reverse pass (``jax.value_and_grad``,
+checkpointed per record interval), whatever the number of free groups. Measured on 2 CPU
+cores (float64, 2026-12-06, ``benchmarks/GRADIENT_MODES_RESULTS.md``): on a 20-cell
+Brazilian disc, one realisation, forward mode takes 0.54, 0.80 and 1.33 s per gradient with
+1, 3 and 6 free groups, reverse mode 1.39-1.44 s, and forward mode compiles in 10-12 s
+against 22-24 s; on the twin's two labs with four 30-cell realisations and three free
+groups, 6.7 s against 10.6 s per gradient, 23 s against 49 s to compile and a peak of 1.8
+against 2.8 GB. The two gradients agree to round-off (``tests/test_calibration.py``)."""
+
+
+def make_functions(problem: Problem, gradient: str = "forward"):
     """Jitted ``value_and_grad`` and forward loss of the free log groups; both return the
-    figures ``[n_targets, K]`` and error bits too."""
+    figures ``[n_targets, K]`` and error bits too. ``gradient`` picks forward or reverse
+    mode (:data:`GRADIENTS`); the value and the figures are the same in both."""
     import jax
+
+    if gradient not in GRADIENTS:
+        raise ValueError(f"gradient must be one of {GRADIENTS}, got {gradient!r}")
 
     def loss(x):
         vals, errs = simulate_all(problem, x)
         return loss_of(vals.mean(axis=1), problem), (vals, errs)
 
-    return jax.jit(jax.value_and_grad(loss, has_aux=True)), jax.jit(loss)
+    if gradient == "reverse":
+        return jax.jit(jax.value_and_grad(loss, has_aux=True)), jax.jit(loss)
+
+    def loss_twice(x):  # jacfwd returns no value: it rides in aux (computed once)
+        val, aux = loss(x)
+        return val, (val, aux)
+
+    jac = jax.jacfwd(loss_twice, has_aux=True)
+
+    def value_and_grad(x):
+        g, (val, aux) = jac(x)
+        return (val, aux), g
+
+    return jax.jit(value_and_grad), jax.jit(loss)
 
 
 def _check(errs):
@@ -452,17 +491,20 @@ def adam(
     steps: int = 60,
     tol: float = 1e-3,
     x0=None,
+    gradient: str = "forward",
     log=print,
 ) -> dict:
     """Adam (optax; learning rate decaying as a cosine from ``learning_rate`` to 5 % of it
     over ``steps``) on the free log groups, projected onto the bounds; stops after
-    ``steps`` iterations or once the loss is below ``tol``. Returns the best point, its
-    loss, the history and the count of simulations (one forward + one reverse pass of every
-    lab per iteration) and the wall time (s, compilation included)."""
+    ``steps`` iterations or once the loss is below ``tol``. The gradient comes from forward
+    or reverse mode (``gradient``, :data:`GRADIENTS`). Returns the best point, its loss, the
+    history and the count of simulations (one run of every lab with its tangents, or one
+    forward and one reverse pass, per iteration), the gradient mode and the wall time (s,
+    compilation included)."""
     import jax.numpy as jnp
     import optax
 
-    vg, _ = make_functions(problem)
+    vg, _ = make_functions(problem, gradient)
     lo, hi = problem.bounds()
     x = jnp.asarray(problem.z0[problem.free] if x0 is None else x0)
     # cosine decay to 5 % of the rate: Adam's steps do not shrink near the optimum otherwise
@@ -491,6 +533,7 @@ def adam(
         "history": hist,
         "simulations": len(hist["loss"]),
         "gradient_evaluations": len(hist["loss"]),
+        "gradient": gradient,
         "wall_time_s": time.perf_counter() - t0,
     }
 
@@ -776,6 +819,13 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--gauss-newton", action="store_true", help="also run Levenberg-Marquardt (jacfwd)"
     )
+    ap.add_argument(
+        "--gradient",
+        choices=GRADIENTS,
+        default=None,
+        help="Adam's gradient: forward mode (default; one run with one tangent per free "
+        "group) or reverse mode",
+    )
     ap.add_argument("--max-evaluations", type=int, default=200)
     ap.add_argument("--float32", action="store_true", help="single precision (default x64)")
     args = ap.parse_args(argv)
@@ -805,7 +855,8 @@ def run(spec: dict, scenes, realisations: int, out_dir: Path, args=None) -> int:
     a = spec.get("adam", {})
     steps = getattr(args, "steps", None) or a.get("steps", 60)
     lr = getattr(args, "learning_rate", None) or a.get("learning_rate", 0.05)
-    res = adam(problem, learning_rate=lr, steps=steps, tol=a.get("tol", 1e-3))
+    gradient = getattr(args, "gradient", None) or a.get("gradient", "forward")
+    res = adam(problem, learning_rate=lr, steps=steps, tol=a.get("tol", 1e-3), gradient=gradient)
     summary = {"adam": report(problem, res, "adam"), "build_s": build_s}
     summary["adam"]["uncertainty"] = uncertainty(problem, res["x"])
     histories = {"Adam (gradient)": res["history"]}

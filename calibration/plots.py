@@ -25,7 +25,7 @@ def plot_convergence(histories: dict[str, dict], path: Path) -> Path:
         a1.semilogy(n, loss, label=name)
         a2.semilogy(np.asarray(h["time_s"], float), loss, label=name)
     a1.set_xlabel(
-        "simulations (lab runs; Adam: forward + reverse, Gauss-Newton: forward + tangents)"
+        "evaluations (Adam: one gradient each, Gauss-Newton: one Jacobian, Nelder-Mead: one run)"
     )
     a2.set_xlabel("wall time (s)")
     for a in (a1, a2):

@@ -2,9 +2,9 @@
 
 Targets are generated with known ("true") parameters on one set of Voronoi seeds; the fit
 starts from a perturbed guess on another set of seeds, by Gauss-Newton (forward-mode
-Jacobian), by Adam (reverse-mode gradient) and by Nelder-Mead (gradient-free baseline) on
-the same loss. The target uncertainties are the standard errors of the truth ensemble means
-(at least ``--min-uncertainty`` of the value).
+Jacobian), by Adam (forward-mode gradient, ``--gradient reverse`` for reverse mode) and by
+Nelder-Mead (gradient-free baseline) on the same loss. The target uncertainties are the
+standard errors of the truth ensemble means (at least ``--min-uncertainty`` of the value).
 
 Two small ensembles of different seeds differ by their sampling error, so the fit cannot
 land closer to the truth than that error allows. Before fitting, :func:`predicted_recovery`
@@ -163,8 +163,15 @@ def main(argv=None) -> int:
         "--methods",
         default="gauss_newton,adam",
         help="gradient fits to run, comma-separated (gauss_newton, adam); Nelder-Mead "
-        "follows unless --no-baseline. Adam needs tens of reverse passes: leave it out of "
-        "large ensembles",
+        "follows unless --no-baseline. Adam needs tens of gradient evaluations: leave it "
+        "out of large ensembles",
+    )
+    ap.add_argument(
+        "--gradient",
+        choices=fit.GRADIENTS,
+        default="forward",
+        help="Adam's gradient: forward mode (one run with one tangent per free group) or "
+        "reverse mode",
     )
     ap.add_argument("--out", type=Path, default=Path("twin_out"))
     args = ap.parse_args(argv)
@@ -227,7 +234,9 @@ def main(argv=None) -> int:
     if "gauss_newton" in methods:
         runs["gauss_newton"] = fit.gauss_newton(problem)
     if "adam" in methods:
-        runs["adam"] = fit.adam(problem, learning_rate=args.learning_rate, steps=args.steps)
+        runs["adam"] = fit.adam(
+            problem, learning_rate=args.learning_rate, steps=args.steps, gradient=args.gradient
+        )
     if not args.no_baseline:
         runs["nelder_mead"] = fit.nelder_mead(problem, max_evaluations=args.max_evaluations)
     for name, res in runs.items():
@@ -250,7 +259,7 @@ def main(argv=None) -> int:
         summary["adam"]["uncertainty"] = fit.uncertainty(problem, runs["adam"]["x"])
     label = {
         "gauss_newton": "Gauss-Newton (forward-mode Jacobian)",
-        "adam": "Adam (reverse-mode gradient)",
+        "adam": f"Adam ({args.gradient}-mode gradient)",
         "nelder_mead": "Nelder-Mead (no gradient)",
     }
     hist = {label[n]: r["history"] for n, r in runs.items()}
