@@ -802,6 +802,8 @@ def report(problem: Problem, result: dict, method: str) -> dict:
         "history": result["history"],
         "table": table(problem, result["x"]),
     }
+    if "gradient" in result:  # Adam: the mode its gradient came from
+        out["gradient"] = result["gradient"]
     return out
 
 

@@ -189,6 +189,7 @@ def test_identical_twin_recovers_normal_stiffness(identical_twin):
     # z-score < 0.1); Adam's momentum carries it past the optimum otherwise, and it would
     # spend the remaining steps coming back
     res = fit.adam(problem, learning_rate=0.06, steps=20, tol=0.1, log=lambda *_: None)
+    assert res["gradient"] == "forward"  # the default
     assert res["loss"] < 0.1 and res["simulations"] < 20
     assert res["history"]["loss"][0] > 100 * res["loss"]
     # sigma_t and S move by ~0.7 % per % of K_n, so the 1 % target uncertainties resolve K_n

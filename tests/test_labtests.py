@@ -129,9 +129,9 @@ def disc_jacobian(disc):
 @pytest.fixture(scope="module")
 def block_jacobians(block):
     """The block's Jacobian by forward mode (``jax.jacfwd``, which the calibration's
-    Gauss-Newton fit, its uncertainty and Adam's gradient use): 26 s to trace, compile and run against 55 s
-    for reverse mode (which the disc's tests cover; on this block the two agreed to 3.5e-11
-    relative, 2026-12-06), on one CPU core."""
+    Gauss-Newton fit, its uncertainty and Adam's gradient use): 26 s to trace, compile and
+    run against 55 s for reverse mode (which the disc's tests cover; on this block the two
+    agreed to 3.5e-11 relative, 2026-12-06), on one CPU core."""
     lab, log_p = block
     figs, err = lt.figures(log_p, lab)
     lt.check_errors(err)
