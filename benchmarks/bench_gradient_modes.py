@@ -9,8 +9,9 @@ it, the peak resident memory, and the gradient, so that the two modes can be com
 
 Cases:
 
-* ``disc20-freeN``: the identical twin of ``tests/test_calibration.py`` (one 20-cell
-  Brazilian disc, seed 3, smooth lab, 5 % platen strain), N = 1, 3, 6 free groups;
+* ``disc20-freeN``: one 20-cell Brazilian disc (seed 3) with the twin's smooth lab
+  (``calibration.twin.scene_options``: surrogate width 1, global damping, 5 % platen
+  strain), as in ``tests/test_calibration.py``, N = 1, 3, 6 free groups;
 * ``twin-free3``: the defaults of ``python -m calibration.twin`` (both labs, four 30-cell
   realisations, free K_n, B_n/B_t, eps_th).
 
@@ -41,12 +42,6 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT_MD = ROOT / "benchmarks" / "GRADIENT_MODES_RESULTS.md"
 CASES = ("disc20-free1", "disc20-free3", "disc20-free6", "twin-free3")
 MODES = ("forward", "reverse")
-DISC20 = {
-    "n_cells": 20,
-    "strain_rate": 80.0,
-    "record_every": 25,
-    "lab": {"max_strain": 0.05, "damping": 2.0e4, "contact_damping": 0.0},
-}
 ALL_GROUPS = ["K_n", "B_n/B_t", "eps_th", "mu", "K_n/K_t", "B_n"]
 
 
@@ -64,7 +59,7 @@ def _problem(case: str):
             },
             "initial": initial,
             "free": ALL_GROUPS[:n_free],
-            "bonded-brazilian": DISC20,
+            "bonded-brazilian": twin.scene_options(20, 80.0, 1.0, 2.0e4)["bonded-brazilian"],
         }
         return fit.make_problem(spec, ["bonded-brazilian"], 1, seeds=[3])
     if case == "twin-free3":

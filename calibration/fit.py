@@ -242,10 +242,8 @@ def check_spec(spec: dict, scenes: Sequence[str], realisations: int) -> list[Tar
         )
     for key in (k for k in adam_opts if k != "gradient"):
         _number("adam", adam_opts, key, positive=True)
-    if adam_opts.get("gradient", "forward") not in GRADIENTS:
-        raise ValueError(
-            f"adam: gradient must be one of {GRADIENTS}, got {adam_opts['gradient']!r}"
-        )
+    if "gradient" in adam_opts:
+        _check_gradient(adam_opts["gradient"], "adam: ")
     return targets
 
 
@@ -438,11 +436,16 @@ with the number of free groups (at most the six of :data:`GROUPS`) and it keeps 
 trajectory. ``"reverse"``: one forward and one reverse pass (``jax.value_and_grad``,
 checkpointed per record interval), whatever the number of free groups. Measured on 2 CPU
 cores (float64, 2026-12-06, ``benchmarks/GRADIENT_MODES_RESULTS.md``): on a 20-cell
-Brazilian disc, one realisation, forward mode takes 0.54, 0.80 and 1.33 s per gradient with
-1, 3 and 6 free groups, reverse mode 1.39-1.44 s, and forward mode compiles in 10-12 s
-against 22-24 s; on the twin's two labs with four 30-cell realisations and three free
-groups, 6.7 s against 10.6 s per gradient, 23 s against 49 s to compile and a peak of 1.8
-against 2.8 GB. The two gradients agree to round-off (``tests/test_calibration.py``)."""
+Brazilian disc, one realisation, forward mode takes 0.52, 0.75 and 1.22 s per gradient with
+1, 3 and 6 free groups, reverse mode 1.32-1.40 s, and forward mode compiles in 10-11 s
+against 23 s; on the twin's two labs with four 30-cell realisations and three free groups,
+6.6 s against 10.9 s per gradient, 23 s against 51 s to compile and a peak of 1.8 against
+3.0 GB. The two gradients agree to round-off (``tests/test_calibration.py``)."""
+
+
+def _check_gradient(gradient, where: str = "") -> None:
+    if gradient not in GRADIENTS:
+        raise ValueError(f"{where}gradient must be one of {GRADIENTS}, got {gradient!r}")
 
 
 def make_functions(problem: Problem, gradient: str = "forward"):
@@ -451,8 +454,7 @@ def make_functions(problem: Problem, gradient: str = "forward"):
     mode (:data:`GRADIENTS`); the value and the figures are the same in both."""
     import jax
 
-    if gradient not in GRADIENTS:
-        raise ValueError(f"gradient must be one of {GRADIENTS}, got {gradient!r}")
+    _check_gradient(gradient)
 
     def loss(x):
         vals, errs = simulate_all(problem, x)
