@@ -249,13 +249,18 @@ def check_spec(spec: dict, scenes: Sequence[str], realisations: int) -> list[Tar
 
 @dataclasses.dataclass
 class Problem:
-    """Labs (one per scene), targets and the free groups of a calibration."""
+    """Labs (one per scene), targets and the free groups of a calibration.
+
+    The compiled programs of a problem (:func:`_program`) are kept in ``compiled`` and
+    shared by every optimiser and report that runs on it; a program is rebuilt when the labs,
+    targets, initial groups or free groups it was traced with have changed since."""
 
     labs: dict
     targets: list[Target]
     z0: np.ndarray
     free: list[int]
     seeds: list[int]
+    compiled: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_free(self) -> int:
@@ -429,6 +434,80 @@ def loss_of(means, problem: Problem):
     return jnp.mean(((means - t) / u) ** 2)
 
 
+def _target_arrays(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+    return (
+        np.array([tt.value for tt in problem.targets], float),
+        np.array([tt.uncertainty for tt in problem.targets], float),
+    )
+
+
+def _snapshot(problem: Problem) -> tuple:
+    """What a traced program of ``problem`` depends on (the labs by identity)."""
+    return (
+        tuple(problem.labs.items()),
+        tuple(dataclasses.astuple(t) for t in problem.targets),
+        np.asarray(problem.z0).tobytes(),
+        tuple(problem.free),
+    )
+
+
+def _same_snapshot(a: tuple, b: tuple) -> bool:
+    labs_a, labs_b = a[0], b[0]
+    return (
+        len(labs_a) == len(labs_b)
+        and all(ka == kb and la is lb for (ka, la), (kb, lb) in zip(labs_a, labs_b, strict=True))
+        and a[1:] == b[1:]
+    )
+
+
+def _program(problem: Problem, kind: str):
+    """The jitted program ``kind`` of ``problem``, traced once and shared:
+
+    * ``"figures"``: ``x -> (figures [n_targets, K], error bits)``;
+    * ``"jacobian"``: ``x -> (d means / d x [n_targets, n_free], (figures, error bits))`` by
+      forward mode (``jax.jacfwd``: one run of every lab carrying one tangent per free
+      group), from which Adam's forward gradient, the Gauss-Newton residual Jacobian and the
+      uncertainty all follow by the chain rule on the host;
+    * ``"reverse"``: ``x -> ((loss, (figures, error bits)), d loss / d x)`` by reverse mode.
+
+    Adam, Levenberg-Marquardt, the uncertainty and the tables of one problem thus compile
+    one forward-mode program between them instead of one each."""
+    import jax
+
+    snap = _snapshot(problem)
+    hit = problem.compiled.get(kind)
+    if hit is not None and _same_snapshot(hit[0], snap):
+        return hit[1]
+    frozen = dataclasses.replace(
+        problem,
+        labs=dict(problem.labs),
+        targets=list(problem.targets),
+        z0=np.array(problem.z0),
+        free=list(problem.free),
+        compiled={},
+    )
+    if kind == "figures":
+        fn = jax.jit(lambda x: simulate_all(frozen, x))
+    elif kind == "jacobian":
+
+        def ensemble_means(x):  # compiled as jit(ensemble_means)
+            vals, errs = simulate_all(frozen, x)
+            return vals.mean(axis=1), (vals, errs)
+
+        fn = jax.jit(jax.jacfwd(ensemble_means, has_aux=True))
+    elif kind == "reverse":
+
+        def loss(x):
+            vals, errs = simulate_all(frozen, x)
+            return loss_of(vals.mean(axis=1), frozen), (vals, errs)
+
+        fn = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    else:
+        raise ValueError(f"unknown program {kind!r}")
+    problem.compiled[kind] = (snap, fn)
+    return fn
+
+
 GRADIENTS = ("forward", "reverse")
 """How :func:`make_functions` differentiates the loss. ``"forward"`` (the default): one run
 of every lab that carries one tangent per free group (``jax.jacfwd``), so its cost grows
@@ -436,11 +515,11 @@ with the number of free groups (at most the six of :data:`GROUPS`) and it keeps 
 trajectory. ``"reverse"``: one forward and one reverse pass (``jax.value_and_grad``,
 checkpointed per record interval), whatever the number of free groups. Measured on 2 CPU
 cores (float64, 2026-12-06, ``benchmarks/GRADIENT_MODES_RESULTS.md``): on a 20-cell
-Brazilian disc, one realisation, forward mode takes 0.52, 0.75 and 1.22 s per gradient with
-1, 3 and 6 free groups, reverse mode 1.32-1.40 s, and forward mode compiles in 10-11 s
-against 23 s; on the twin's two labs with four 30-cell realisations and three free groups,
-6.6 s against 10.9 s per gradient, 23 s against 51 s to compile and a peak of 1.8 against
-3.0 GB. The two gradients agree to round-off (``tests/test_calibration.py``)."""
+Brazilian disc, one realisation, forward mode takes 0.54, 0.79 and 1.21 s per gradient with
+1, 3 and 6 free groups, reverse mode 1.43-1.45 s, and forward mode compiles in 10-12 s
+against 23-24 s; on the twin's two labs with four 30-cell realisations and three free
+groups, 6.6 s against 10.9 s per gradient, 25 s against 55 s to compile and a peak of 1.8
+against 3.0 GB. The two gradients agree to round-off (``tests/test_calibration.py``)."""
 
 
 def _check_gradient(gradient, where: str = "") -> None:
@@ -449,31 +528,34 @@ def _check_gradient(gradient, where: str = "") -> None:
 
 
 def make_functions(problem: Problem, gradient: str = "forward"):
-    """Jitted ``value_and_grad`` and forward loss of the free log groups; both return the
+    """``value_and_grad`` and the forward loss of the free log groups; both return the
     figures ``[n_targets, K]`` and error bits too. ``gradient`` picks forward or reverse
-    mode (:data:`GRADIENTS`); the value and the figures are the same in both."""
-    import jax
-
+    mode (:data:`GRADIENTS`); the value and the figures are the same in both. Forward mode
+    takes the Jacobian of the ensemble means (the problem's shared ``"jacobian"`` program,
+    :func:`_program`) and applies the chain rule of the loss on the host, ``dL/dx =
+    (2 / n) sum_f (m_f - t_f) / u_f^2 dm_f/dx``; the loss's value is computed on the host
+    from the figures in both modes' forward loss."""
     _check_gradient(gradient)
+    t, u = _target_arrays(problem)
+
+    def host_loss(vals) -> np.float64:
+        return np.mean(((np.asarray(vals).mean(axis=1) - t) / u) ** 2)
 
     def loss(x):
-        vals, errs = simulate_all(problem, x)
-        return loss_of(vals.mean(axis=1), problem), (vals, errs)
+        vals, errs = _program(problem, "figures")(x)
+        return host_loss(vals), (vals, errs)
 
     if gradient == "reverse":
-        return jax.jit(jax.value_and_grad(loss, has_aux=True)), jax.jit(loss)
-
-    def loss_twice(x):  # jacfwd returns no value: it rides in aux (computed once)
-        val, aux = loss(x)
-        return val, (val, aux)
-
-    jac = jax.jacfwd(loss_twice, has_aux=True)
+        return _program(problem, "reverse"), loss
 
     def value_and_grad(x):
-        g, (val, aux) = jac(x)
-        return (val, aux), g
+        jac, (vals, errs) = _program(problem, "jacobian")(x)
+        m = np.asarray(vals).mean(axis=1)
+        jac = np.asarray(jac)
+        g = (2.0 / t.size) * (((m - t) / u**2) @ jac)
+        return (host_loss(vals), (vals, errs)), g.astype(jac.dtype)
 
-    return jax.jit(value_and_grad), jax.jit(loss)
+    return value_and_grad, loss
 
 
 def _check(errs):
@@ -587,23 +669,6 @@ def nelder_mead(
     }
 
 
-def _residual_function(problem: Problem):
-    """Weighted residuals ``r_f = (m_f - t_f) / (u_f sqrt(n))`` of the free log groups, so
-    that ``|r|^2`` is the loss of :func:`loss_of`; aux = (r, figures, error bits)."""
-    import jax.numpy as jnp
-
-    t = jnp.asarray([tt.value for tt in problem.targets])
-    u = jnp.asarray([tt.uncertainty for tt in problem.targets])
-    scale = u * math.sqrt(len(problem.targets))
-
-    def res(x):
-        vals, errs = simulate_all(problem, x)
-        r = (vals.mean(axis=1) - t) / scale
-        return r, (r, vals, errs)
-
-    return res
-
-
 def gauss_newton(
     problem: Problem,
     *,
@@ -628,20 +693,24 @@ def gauss_newton(
     ensemble is rough at the percent level: contact and bond events that the surrogate does
     not smooth move it by a few % between nearby points, so smaller predicted gains are
     noise), or after ``max_rejections`` trials in a row that did not lower it (for the same
-    reason). Returns what :func:`adam` returns; ``simulations`` counts the Jacobian
-    evaluations."""
+    reason). The Jacobian program is the problem's shared one (:func:`_program`), so a
+    Gauss-Newton fit after Adam (or before the uncertainty) compiles nothing new. Returns
+    what :func:`adam` returns; ``simulations`` counts the Jacobian evaluations."""
     import jax
 
     lo, hi = problem.bounds()
-    jf = jax.jit(jax.jacfwd(_residual_function(problem), has_aux=True))
+    t, u = _target_arrays(problem)
+    scale = u * math.sqrt(len(problem.targets))
     x = np.asarray(problem.z0[problem.free] if x0 is None else x0, float)
     hist = {"loss": [], "x": [], "time_s": []}
     t0 = time.perf_counter()
 
     def evaluate(xx):
-        jac, (r, _, errs) = jf(jax.numpy.asarray(xx))
+        jac, (vals, errs) = _program(problem, "jacobian")(jax.numpy.asarray(xx))
         _check(errs)
-        r, jac = np.asarray(r, float), np.asarray(jac, float)
+        # the weighted residuals r_f = (m_f - t_f) / (u_f sqrt(n)), |r|^2 = the loss
+        r = (np.asarray(vals, float).mean(axis=1) - t) / scale
+        jac = np.asarray(jac, float) / scale[:, None]
         val = float(r @ r)
         hist["loss"].append(val)
         hist["x"].append(np.asarray(xx).tolist())
@@ -692,11 +761,7 @@ def mean_jacobian(problem: Problem, x) -> tuple[np.ndarray, np.ndarray]:
     every realisation ``[n_targets, K]`` at ``x``."""
     import jax
 
-    def means(xx):
-        vals, _ = simulate_all(problem, xx)
-        return vals.mean(axis=1), vals
-
-    jac, vals = jax.jit(jax.jacfwd(means, has_aux=True))(jax.numpy.asarray(x))
+    jac, (vals, _) = _program(problem, "jacobian")(jax.numpy.asarray(x))
     return np.asarray(jac), np.asarray(vals)
 
 
