@@ -253,7 +253,9 @@ class Problem:
 
     The compiled programs of a problem (:func:`_program`) are kept in ``compiled`` and
     shared by every optimiser and report that runs on it; a program is rebuilt when the labs,
-    targets, initial groups or free groups it was traced with have changed since."""
+    initial groups or free groups it was traced with (and, for the reverse-mode loss, the
+    targets) have changed since. The figures and their Jacobian do not depend on the
+    targets: new targets reuse them."""
 
     labs: dict
     targets: list[Target]
@@ -441,11 +443,13 @@ def _target_arrays(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def _snapshot(problem: Problem) -> tuple:
-    """What a traced program of ``problem`` depends on (the labs by identity)."""
+def _snapshot(problem: Problem, kind: str) -> tuple:
+    """What the traced program ``kind`` of ``problem`` depends on (the labs by identity;
+    the targets only where the loss is traced, i.e. in reverse mode)."""
+    targets = tuple(dataclasses.astuple(t) for t in problem.targets) if kind == "reverse" else ()
     return (
         tuple(problem.labs.items()),
-        tuple(dataclasses.astuple(t) for t in problem.targets),
+        targets,
         np.asarray(problem.z0).tobytes(),
         tuple(problem.free),
     )
@@ -474,7 +478,7 @@ def _program(problem: Problem, kind: str):
     one forward-mode program between them instead of one each."""
     import jax
 
-    snap = _snapshot(problem)
+    snap = _snapshot(problem, kind)
     hit = problem.compiled.get(kind)
     if hit is not None and _same_snapshot(hit[0], snap):
         return hit[1]
