@@ -67,6 +67,7 @@ def biaxial(args) -> dict:
         max_strain=args.max_strain,
         record_every=args.record_every,
         **({"eps_th": args.eps_th} if args.eps_th else {}),
+        shear_damping=args.shear_damping,
     )
     pressures = _floats(args.pressures)
     seeds = list(range(args.seeds))
@@ -558,6 +559,13 @@ def main() -> None:
         type=float,
         default=0.0,
         help="biaxial: bond strain threshold (default: the scene's, paper 002 Table 1)",
+    )
+    ap.add_argument(
+        "--shear-damping",
+        type=float,
+        default=0.0,
+        help="biaxial: viscous damping of the cells while shearing, 1/s (default 0: none, "
+        "paper 002; bonded_biaxial.Config.shear_damping)",
     )
     ap.add_argument(
         "--servo-response",

@@ -227,6 +227,26 @@ def test_biaxial_holds_p_constant_while_shearing():
     assert e1[-1] == pytest.approx(cfg.max_strain, rel=0.1)
 
 
+def test_shear_damping_reaches_the_shearing_stage_only():
+    """``shear_damping`` damps the cells while shearing (0 by default, paper 002), not
+    while the block is pressed to p; one step of the control scales free velocities by
+    exp(-c dt)."""
+    cfg = dataclasses.replace(bx.Config(), n_cells=40, width=0.03, height=0.06)
+    setup = bx.build(cfg, [(0, 100.0e6)])
+    iso = bd.make_control(setup.states[0], p_target=100.0e6, box=True)
+    assert float(bx.shear_controls(iso, cfg).damping) == 0.0
+    damped = bx.shear_controls(iso, dataclasses.replace(cfg, shear_damping=1.0e5))
+    assert float(iso.damping) == 0.0 and float(damped.damping) == 1.0e5
+    assert bool(damped.p_constant) and not bool(iso.p_constant)
+    state = setup.states[0]
+    p = state.particles
+    state = replace(state, particles=replace(p, vel=jnp.ones_like(p.vel)))
+    out = bd.apply_control(state, setup.params, damped)
+    free = np.asarray(p.active & ~p.fixed)
+    decay = np.exp(-1.0e5 * float(setup.params.dt))
+    np.testing.assert_allclose(np.asarray(out.particles.vel)[free], decay, rtol=1e-12)
+
+
 def test_servo_speed_cap_is_a_setting():
     cfg = dataclasses.replace(bx.Config(), servo_max_speed=50.0, strain_rate=10.0)
     walls = bx._walls(cfg, bd.material_from(cfg), 100.0e6)
