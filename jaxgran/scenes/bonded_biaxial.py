@@ -93,7 +93,8 @@ class Config(bd.Material):
     # only). It damps the stress waves of the bond-breaking bursts, which throw p off its
     # target before the peak (6.1 % on seed 2 at 100 MPa undamped, 1.3 % at 1e5), and it
     # drags the moving cells: the platen stress exceeds the mid-height one by about
-    # c rho v H / 4 (v the platen speed; 2.2 MPa at 1e5 with Table 1, 10 /s and H = 8 cm)
+    # c rho v H / 4 (v the platen speed; 2.2 MPa at 1e5 with rho = 2700 kg/m^3, 10 /s and
+    # H = 8 cm)
     shear_damping: float = 0.0
     band_fraction: float = 0.15  # strain-gauge bands: cells this close to an edge (x size)
     dt_safety: float = 0.5
