@@ -427,20 +427,21 @@ def simulate_all(problem: Problem, x):
     return jnp.stack(figure_values(figs, problem.labs, problem.targets)), errs
 
 
-def loss_of(means, problem: Problem):
-    """``mean_f ((m_f - t_f) / u_f)^2`` (see the module docstring)."""
-    import jax.numpy as jnp
-
-    t = jnp.asarray([tt.value for tt in problem.targets])
-    u = jnp.asarray([tt.uncertainty for tt in problem.targets])
-    return jnp.mean(((means - t) / u) ** 2)
-
-
 def _target_arrays(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Target values ``t_f`` and uncertainties ``u_f``."""
     return (
         np.array([tt.value for tt in problem.targets], float),
         np.array([tt.uncertainty for tt in problem.targets], float),
     )
+
+
+def loss_of(means, problem: Problem, xp=None):
+    """``mean_f ((m_f - t_f) / u_f)^2`` (see the module docstring), in ``xp`` (numpy on the
+    host, ``jax.numpy`` by default: traceable)."""
+    if xp is None:
+        import jax.numpy as xp
+    t, u = _target_arrays(problem)
+    return xp.mean(((means - t) / u) ** 2)
 
 
 def _snapshot(problem: Problem, kind: str) -> tuple:
@@ -540,24 +541,22 @@ def make_functions(problem: Problem, gradient: str = "forward"):
     (2 / n) sum_f (m_f - t_f) / u_f^2 dm_f/dx``; the loss's value is computed on the host
     from the figures in both modes' forward loss."""
     _check_gradient(gradient)
-    t, u = _target_arrays(problem)
-
-    def host_loss(vals) -> np.float64:
-        return np.mean(((np.asarray(vals).mean(axis=1) - t) / u) ** 2)
+    # each call looks its program up, so a changed lab or target set is never run stale
 
     def loss(x):
         vals, errs = _program(problem, "figures")(x)
-        return host_loss(vals), (vals, errs)
+        return loss_of(np.asarray(vals).mean(axis=1), problem, np), (vals, errs)
 
     if gradient == "reverse":
-        return _program(problem, "reverse"), loss
+        return lambda x: _program(problem, "reverse")(x), loss
 
     def value_and_grad(x):
         jac, (vals, errs) = _program(problem, "jacobian")(x)
+        t, u = _target_arrays(problem)
         m = np.asarray(vals).mean(axis=1)
         jac = np.asarray(jac)
         g = (2.0 / t.size) * (((m - t) / u**2) @ jac)
-        return (host_loss(vals), (vals, errs)), g.astype(jac.dtype)
+        return (loss_of(m, problem, np), (vals, errs)), g.astype(jac.dtype)
 
     return value_and_grad, loss
 
