@@ -3,6 +3,7 @@ and ensembles under jax.vmap. Tiny specimens (40-50 cells) and fast loading keep
 
 import dataclasses
 import math
+import types
 
 import jax.numpy as jnp
 import numpy as np
@@ -376,3 +377,54 @@ def _row(p, q, true, q_res):
         "p_residual_Pa": p,
         "q_residual_Pa": q_res,
     }
+
+
+def _biaxial_series(e1, p, q, thickness=0.01, h0=0.08, w0=0.04):
+    """Wall forces and positions of a biaxial block with axial strain ``e1``, no lateral
+    strain and the invariants ``p``, ``q`` (Pa) per record (the layout :func:`bx.stresses`
+    reads)."""
+    e1, p, q = (np.asarray(a, float) for a in (e1, p, q))
+    n = e1.size
+    h, w = h0 * (1.0 - e1), np.full(n, w0)
+    s_ax, s_lat = p + q, p - q
+    normal = np.array([[0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, -1.0]])
+    fn = np.zeros((n, 4))
+    fn[:, bd.BOTTOM] = fn[:, bd.TOP] = s_ax * w * thickness
+    fn[:, bd.LEFT] = fn[:, bd.RIGHT] = s_lat * h * thickness
+    point = np.zeros((n, 4, 2))
+    point[:, bd.TOP, 1], point[:, bd.RIGHT, 0] = h, w
+    return {
+        "wall_force": -fn[..., None] * normal[None],
+        "wall_point": point,
+        "time": np.arange(n) * 1e-6,
+        "n_broken": np.zeros(n, int),
+    }
+
+
+def test_shear_peak_is_the_first_failure_not_a_later_reloading():
+    """q rises to 200 MPa at 1 % strain with p held, fails (drops 40 %), and the block is
+    re-loaded to 220 MPa while p drifts to 1.5 x its target: the peak at the target p is
+    the first one; the largest q is kept apart with its own drift. A burst that costs
+    10 % of q on the way up is not a failure."""
+    e1 = np.linspace(0.0, 0.03, 301)
+    p_t = 100e6
+    knots = [0, 0.006, 0.0065, 0.01, 0.012, 0.02, 0.03]
+    q = 1e6 * np.interp(e1, knots, [0, 150, 135, 200, 120, 220, 150])
+    p = np.where(e1 > 0.012, 150e6, p_t)
+    run = types.SimpleNamespace(series=_biaxial_series(e1, p, q))
+    m = bx.measure_shear(run, p_t, 0.01, 0.2)
+    assert m["q_peak_Pa"] == pytest.approx(200e6, rel=1e-9)
+    assert m["axial_strain_at_peak"] == pytest.approx(0.01, abs=1e-12)
+    assert m["p_at_peak_Pa"] == pytest.approx(p_t, rel=1e-9)
+    assert m["p_max_relative_deviation_to_peak"] == pytest.approx(0.0, abs=1e-9)
+    assert m["q_largest_Pa"] == pytest.approx(220e6, rel=1e-9)
+    assert m["axial_strain_at_largest"] == pytest.approx(0.02, abs=1e-12)
+    assert m["p_max_relative_deviation_to_largest"] == pytest.approx(0.5, rel=1e-9)
+    # a tolerance below the burst's 10 % takes the burst for the failure
+    early = bx.measure_shear(run, p_t, 0.01, 0.2, failure_drop=0.05)
+    assert early["q_peak_Pa"] == pytest.approx(150e6, rel=1e-9)
+    # without a drop the peak is the largest q
+    mono = types.SimpleNamespace(series=_biaxial_series(e1, np.full_like(e1, p_t), 1e8 * e1))
+    assert bx.measure_shear(mono, p_t, 0.01, 0.2)["q_peak_Pa"] == pytest.approx(3e6)
+    with pytest.raises(ValueError, match="failure_drop"):
+        bx.first_failure_peak(q, e1 > 0, 1.0)
