@@ -26,6 +26,39 @@ import gc  # noqa: E402
 
 import pytest  # noqa: E402
 
+# Compilations seen by the tests that count them (the `compile_log` fixture). JAX's
+# monitoring has no way to remove a listener, so one pair is registered here for the
+# whole session and hands each event to the logs that are open.
+_open_compile_logs: list[list] = []
+
+
+def _on_compile(event, duration, **kwargs):
+    if event == "/jax/core/compile/backend_compile_duration":
+        for log in _open_compile_logs:
+            log.append((str(kwargs.get("fun_name", "?")), duration))
+
+
+def _on_cache_hit(event, **kwargs):
+    # an executable loaded from the persistent cache above is a compilation too
+    if event == "/jax/compilation_cache/cache_hits":
+        for log in _open_compile_logs:
+            log.append(("persistent cache hit", 0.0))
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_compile)
+jax.monitoring.register_event_listener(_on_cache_hit)
+
+
+@pytest.fixture
+def compile_log():
+    """A list that receives ``(function name, seconds)`` for every XLA compilation during
+    the test (persistent-cache hits as ``("persistent cache hit", 0.0)``); ``clear()`` it
+    where the counting should start."""
+    log: list[tuple[str, float]] = []
+    _open_compile_logs.append(log)
+    yield log
+    _open_compile_logs.remove(log)
+
 
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_code():

@@ -7,7 +7,6 @@ of the contact dashpot; see tests/test_labtests.py)."""
 
 import numpy as np
 import pytest
-from jax import monitoring
 
 from calibration import fit
 from jaxgran.state import replace
@@ -18,22 +17,6 @@ SCENE = {
     "record_every": 25,
     "lab": {"max_strain": 0.05, "damping": 2.0e4, "contact_damping": 0.0},
 }
-_compiles: list[tuple[str, float]] = []  # (function, seconds)
-
-
-def _compile_listener(event, duration, **kwargs):
-    if event == "/jax/core/compile/backend_compile_duration":
-        _compiles.append((str(kwargs.get("fun_name", "?")), duration))
-
-
-def _cache_hit_listener(event, **kwargs):
-    # a compilation served by the persistent cache (tests/conftest.py) counts too
-    if event == "/jax/compilation_cache/cache_hits":
-        _compiles.append(("persistent cache hit", 0.0))
-
-
-monitoring.register_event_duration_secs_listener(_compile_listener)
-monitoring.register_event_listener(_cache_hit_listener)
 
 TRUE = {"K_n": 1.3e8, "K_n/K_t": 1.0, "B_n": 2.0e10, "B_n/B_t": 1.0, "eps_th": 0.02, "mu": 0.3}
 
@@ -214,7 +197,7 @@ def test_identical_twin_recovers_normal_stiffness(identical_twin):
     assert _k_n(problem, res) == pytest.approx(1.3e8, rel=0.02)
 
 
-def test_gauss_newton_recovers_normal_stiffness_in_a_few_jacobians(identical_twin):
+def test_gauss_newton_recovers_normal_stiffness_in_a_few_jacobians(identical_twin, compile_log):
     """Levenberg-Marquardt on the forward-mode Jacobian: the same twin, with the truth an
     exact zero of the residuals (same seed), so the fit must reach it to well below the
     1 % resolution and its loss must fall quadratically (each step removes most of it)."""
@@ -222,11 +205,11 @@ def test_gauss_newton_recovers_normal_stiffness_in_a_few_jacobians(identical_twi
     # Adam's forward gradient (the tests above), this fit and the uncertainty share one
     # compiled Jacobian of the problem: compiled by now, it is not compiled again
     fit.mean_jacobian(problem, np.asarray(problem.z0[problem.free]))
-    _compiles.clear()
+    compile_log.clear()
     res = fit.gauss_newton(problem, iterations=6, tol=1e-2, log=lambda *_: None)
     fit.uncertainty(problem, res["x"])
     # nothing compiled but a few small host-to-device conversions (milliseconds each)
-    assert not [c for c in _compiles if c[1] > 0.2 or "cache hit" in c[0]], _compiles
+    assert not [c for c in compile_log if c[1] > 0.2 or "cache hit" in c[0]], compile_log
     losses = res["history"]["loss"]
     assert res["simulations"] <= 6 and res["loss"] < 1e-2
     assert losses[1] < 0.1 * losses[0]

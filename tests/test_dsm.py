@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax import monitoring
 
 from jaxgran.breakage.dsm import (
     DsmBreakage,
@@ -23,23 +22,6 @@ from jaxgran.simulate import prepare, run_segment
 from jaxgran.state import replace
 
 CFG = dataclasses.replace(bz.Config(), **bz.QUICK)
-
-_compiles: list[str] = []
-
-
-def _listener(event, duration, **kwargs):
-    if event == "/jax/core/compile/backend_compile_duration":
-        _compiles.append(str(kwargs.get("fun_name", "?")))
-
-
-def _hit_listener(event, **kwargs):
-    # a compilation served by the persistent cache (tests/conftest.py) is a compilation too
-    if event == "/jax/compilation_cache/cache_hits":
-        _compiles.append("persistent cache hit")
-
-
-monitoring.register_event_duration_secs_listener(_listener)
-monitoring.register_event_listener(_hit_listener)
 
 
 # ----------------------------------------------------------------------------- calibration
@@ -149,20 +131,20 @@ def test_disc_between_platens_splits_in_halves_at_the_predicted_load(quick_run):
     np.testing.assert_allclose(ev["connection_points"], [[0.0, 0.0]], atol=1e-3 * CFG.disc_radius)
 
 
-def test_no_recompiles_across_breakage_events(quick_run):
+def test_no_recompiles_across_breakage_events(quick_run, compile_log):
     """After one breakage has compiled everything, another breakage (a new DSM, a turned
     disc) and the segment after it compile nothing."""
     _, params, grid = _pressed_disc(0.5 * CFG.target_force)
     state, *_ = _pressed_disc(1.05 * CFG.target_force, rotation=0.05)
     dsm = _dsm(params, grid)
-    _compiles.clear()
+    compile_log.clear()
     state, stop = dsm(state, None)
     assert len(dsm.events) == 1 and not stop
     state, _, err = run_segment(state, params, grid, CFG.check_every // CFG.record_every, 10)
     assert int(err) == 0
-    assert _compiles == []
-    jax.jit(lambda x: x + 1)(jnp.zeros(3))  # the listener does see compiles
-    assert _compiles
+    assert compile_log == []
+    jax.jit(lambda x: x + 1)(jnp.zeros(3))  # the log does see compiles
+    assert compile_log
     # the halves start without force
     ids = dsm.events[0]["fragment_slots"]
     assert np.all(np.linalg.norm(np.asarray(state.particles.force)[ids], axis=1) < 1e-6)
