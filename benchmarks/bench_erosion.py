@@ -86,6 +86,9 @@ MID = {
     # fines-merging and the 0.5 mm sphero-radius became the defaults)
     "sphero_radius": 1.0e-3,
     "small_pieces": "fines",
+    # settled with the contact friction, as until the frictionless settling became the
+    # scene's default (2026-12-06)
+    "settle_friction": math.nan,
 }
 
 

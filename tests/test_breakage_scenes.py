@@ -4,6 +4,7 @@ Fig. 12) and the quick oedometric test of breakable pentagons (paper 000 §III).
 import contextlib
 import dataclasses
 import logging
+import math
 
 import jax
 import numpy as np
@@ -103,24 +104,47 @@ def quick_split(tmp_path_factory):
         real(*args)
         saved.append(path.read_bytes())
 
+    stages = []  # (desc, grains' and walls' friction) of each simulate call
+    real_simulate = oc.simulate
+
+    def simulate(state, params, *args, **kwargs):
+        mu = (np.asarray(params.friction), np.asarray(params.wall_friction))
+        stages.append((kwargs.get("desc"), mu))
+        return real_simulate(state, params, *args, **kwargs)
+
     with contextlib.ExitStack() as stack:
         mp = stack.enter_context(pytest.MonkeyPatch.context())
         mp.setattr(io, "save_checkpoint", keep)
+        mp.setattr(oc, "simulate", simulate)
         compiled = stack.enter_context(compiles_of("run_segment"))
         run = oc.simulate_test(QUICK_SPLIT, checkpoint=path, checkpoint_every_s=0.0)
-    return run, list(compiled), saved, path
+    return run, list(compiled), saved, path, stages
 
 
 def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside(quick_split):
     cfg = QUICK_SPLIT
-    (settle, load, brk, info), compiled, _, _ = quick_split
+    (settle, load, brk, info), compiled, _, _, stages = quick_split
     # breakage and the adaptive time step never recompile the segment; a capacity growth
-    # (logged in the event) may, once per growth
+    # may, once per growth: the particle slots (logged in the event) or the contact
+    # search's cells and pairs (logged in regrows; the settled pile, denser than the lattice
+    # it fell from, can fill a cell beyond the starting capacity)
     growths = sum("capacity_growth" in e for e in brk.events)
+    growths += len(settle.regrows) + len(load.regrows)
     assert len(compiled) <= 1 + growths
     s = oc.summarize(settle, load, brk, info, cfg)
     assert s["finite"] and not s["escaped"]
     assert s["n_events"] >= 1
+    # the pile settled with frictionless grains and walls, came to rest with Table I's mu,
+    # and was loaded with it
+    assert cfg.settle_friction == 0.0
+    assert [d for d, _ in stages] == [
+        "oedometer settle",
+        "oedometer settle (contact friction)",
+        "oedometer split-cell",
+    ]
+    assert all(np.all(m == 0.0) for m in stages[0][1])
+    assert all(np.all(m == cfg.friction) for _, mu in stages[1:] for m in mu)
+    assert settle.stopped_early  # at rest by settle_ke_ratio
     # mass: final active mass = initial - sum of the events' losses (fines + erosion)
     assert s["mass_bookkeeping_error"] < 1e-12
     # quick mode drops pieces under a tenth of the mean grain as fines; what local erosion
@@ -175,7 +199,7 @@ def _assert_same_particles(resumed, p):
 
 
 def test_an_interrupted_oedometer_resumes_to_the_same_run(quick_split, tmp_path):
-    (_, load, brk, info), _, saved, path = quick_split
+    (_, load, brk, info), _, saved, path, _ = quick_split
     n_final = len(brk.events)
     assert n_final >= 1 and len(saved) >= 3
     # the last checkpoint with a breakage still to come (so that the resumed run breaks)
@@ -215,7 +239,7 @@ def test_an_interrupted_oedometer_resumes_to_the_same_run(quick_split, tmp_path)
 
 
 def test_a_run_forked_before_its_first_breakage_goes_on_as_the_run(quick_split, tmp_path):
-    (_, load, brk, _), _, saved, _ = quick_split
+    (_, load, brk, _), _, saved, _, _ = quick_split
     key = oc.checkpoint_key(QUICK_SPLIT)
     src = tmp_path / "source.pkl"
     n_events = []
@@ -269,7 +293,7 @@ def test_compare_tallies_what_the_runs_did(quick_split, tmp_path):
     from jaxgran.compare import compare
     from jaxgran.scenes.base import write_outputs
 
-    (settle, load, brk, info), _, _, _ = quick_split
+    (settle, load, brk, info), _, _, _, _ = quick_split
     summary = oc.summarize(settle, load, brk, info, QUICK_SPLIT)
     run_dir = tmp_path / "split-cell"
     write_outputs(
@@ -316,3 +340,19 @@ def test_compare_tallies_what_the_runs_did(quick_split, tmp_path):
 def test_oedometer_rejects_a_bad_fragment_radius_floor_before_settling(floor):
     with pytest.raises(ValueError, match="fragment_radius_floor"):
         oc.simulate_test(dataclasses.replace(oc.Config(), fragment_radius_floor=floor))
+
+
+def test_settling_friction_is_set_for_the_settling_only():
+    """``settle_friction`` replaces the Coulomb coefficient of grains and walls; nan keeps
+    the contact friction (the loosely settled pile); a negative value is refused."""
+    cfg = dataclasses.replace(oc.Config(), **oc.QUICK)
+    _, params, _ = oc.build(cfg)
+    dense = oc.settling_params(dataclasses.replace(cfg, settle_friction=0.1), params)
+    assert np.all(np.asarray(dense.friction) == 0.1)
+    assert np.all(np.asarray(dense.wall_friction) == 0.1)
+    assert np.asarray(dense.wall_friction).shape == np.asarray(params.wall_friction).shape
+    assert dense.normal_stiffness is params.normal_stiffness and dense.dt is params.dt
+    loose = dataclasses.replace(cfg, settle_friction=math.nan)
+    assert oc.settling_params(loose, params) is params
+    with pytest.raises(ValueError, match="settle_friction"):
+        dataclasses.replace(cfg, settle_friction=-0.1)

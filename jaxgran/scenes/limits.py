@@ -176,6 +176,7 @@ SETTINGS: dict[str, Rule] = {
     "ke_stop_ratio": FRACTION,
     "settle_time": POSITIVE,
     "settle_ke_ratio": FRACTION,
+    "settle_friction": Range(0.0, nan="the contact friction"),
     "record_every": COUNT,
     "records_per_segment": COUNT,
     "check_every": COUNT,
