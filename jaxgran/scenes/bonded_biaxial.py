@@ -388,8 +388,8 @@ def measure_shear(
 
 def first_failure_peak(q: np.ndarray, valid: np.ndarray, failure_drop: float) -> int:
     """Index of the largest ``q`` among the ``valid`` records before the first valid record
-    at which ``q`` has fallen below ``1 - failure_drop`` of its running maximum (the whole
-    series' largest where it never does)."""
+    at which ``q`` has fallen below ``1 - failure_drop`` of its running maximum (the largest
+    valid record where it never does; the largest of all where none is valid)."""
     if not 0.0 < failure_drop < 1.0:
         raise ValueError(f"failure_drop must be in (0, 1), got {failure_drop}")
     q = np.asarray(q, float)
