@@ -146,7 +146,13 @@ def _run(args) -> int:
     _enable_x64(not args.float32)
     from .errors import SceneError
     from .scenes import SCENES
-    from .scenes.base import apply_overrides, dumps, parse_sets, read_config_file
+    from .scenes.base import (
+        apply_overrides,
+        dumps,
+        parse_sets,
+        read_config_file,
+        unrecorded_settings,
+    )
 
     if args.scene not in SCENES:
         print(f"unknown scene {args.scene!r}; available: {', '.join(SCENES)}", file=sys.stderr)
@@ -156,9 +162,20 @@ def _run(args) -> int:
     try:
         if args.quick:
             cfg = dataclasses.replace(cfg, **mod.QUICK)
+        sets = parse_sets(args.sets)
         if args.config is not None:
-            cfg = apply_overrides(cfg, read_config_file(args.config, args.scene))
-        cfg = apply_overrides(cfg, parse_sets(args.sets))
+            stored = read_config_file(args.config, args.scene)
+            cfg = apply_overrides(cfg, stored)
+            gaps = unrecorded_settings(args.config, cfg, {**stored, **sets})
+            if gaps:
+                told = ", ".join(f"{k}={v!r}" for k, v in gaps.items())
+                print(
+                    f"warning: {args.config} does not record {told}; they take the values "
+                    "shown, which may differ from what that run used (settings added since; "
+                    "--set them to be sure)",
+                    file=sys.stderr,
+                )
+        cfg = apply_overrides(cfg, sets)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

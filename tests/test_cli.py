@@ -186,7 +186,8 @@ def test_a_run_is_repeated_from_its_summary(deposit_run, tmp_path, capsys):
 
     from jaxgran.scenes import SCENES
     from jaxgran.scenes import deposit as dp
-    from jaxgran.scenes.base import apply_overrides, read_config_file
+    from jaxgran.scenes import oedometer_cantor as oc
+    from jaxgran.scenes.base import apply_overrides, read_config_file, unrecorded_settings
 
     summary = deposit_run / "summary.json"
     cfg = apply_overrides(dp.Config(), read_config_file(summary, "deposit"))
@@ -208,6 +209,21 @@ def test_a_run_is_repeated_from_its_summary(deposit_run, tmp_path, capsys):
         json.dumps({"scene": "oedometer_cantor", "config": {"seed": 4}})
     )
     assert read_config_file(tmp_path / "cantor.json", "oedometer-cantor") == {"seed": 4}
+    # a summary from before a setting existed: the setting's value now is named on stderr
+    # (here every setting but seed; the run then stops on the unknown --set)
+    assert main(["run", "oedometer-cantor", "--config", str(tmp_path / "cantor.json"),
+                 "--set", "no_such_setting=1"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "does not record" in err and "settle_friction=0.0" in err and "seed=" not in err
+    assert "unknown setting 'no_such_setting'" in err
+    assert (
+        unrecorded_settings(tmp_path / "cantor.json", oc.Config(), {"seed": 4})["load_time"]
+        == oc.Config().load_time
+    )
+    full = dataclasses.asdict(oc.Config())
+    assert unrecorded_settings(tmp_path / "cantor.json", oc.Config(), full) == {}
+    (tmp_path / "plain.json").write_text(json.dumps({"seed": 4}))  # not a summary: no gaps
+    assert unrecorded_settings(tmp_path / "plain.json", oc.Config(), {"seed": 4}) == {}
     (tmp_path / "bad.json").write_text("{not json")
     assert main(["run", "deposit", "--config", str(tmp_path / "bad.json")]) == 2
     assert "is not JSON" in capsys.readouterr().err

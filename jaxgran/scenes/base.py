@@ -120,6 +120,26 @@ def read_config_file(path: Path, scene: str) -> dict[str, Any]:
     return data
 
 
+def unrecorded_settings(path: Path, config: Any, settings: dict[str, Any]) -> dict[str, Any]:
+    """Settings of ``config`` (a scene's Config) that the run summary at ``path`` does not
+    record, with the values they take now (today's defaults, or ``--quick``'s): settings added
+    after that run was made, whose defaults may differ from what the run used (e.g.
+    ``oedometer-cantor``'s ``settle_friction``, 0 since 2026-12-06, where runs before it
+    settled with the contact friction). Empty for a plain object of settings, which sets only
+    what it names by intent."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+    if not (isinstance(data, dict) and isinstance(data.get("config"), dict)):
+        return {}
+    return {
+        f.name: getattr(config, f.name)
+        for f in dataclasses.fields(config)
+        if f.name not in settings
+    }
+
+
 def parse_sets(items: list[str] | None) -> dict[str, str]:
     """``["a=1", "b=x"]`` -> ``{"a": "1", "b": "x"}`` with a clear error for bad items."""
     out = {}
