@@ -7,7 +7,8 @@ only (:func:`jaxgran.scenes.interface.mohr_envelope_fits`):
     python benchmarks/pool_interface_envelopes.py runs/itf_s0 runs/itf_s1 runs/itf_s2
 
 Prints one JSON object: circles, R^2 of both fits on all circles and on the peaks only, and
-per run the UCS, the tensile strength and which confinements peaked.
+per run the UCS, the tensile strength and which confinements peaked (ended on a drop or on
+a plateau: ``post_peak_behaviour``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,13 @@ import sys
 from pathlib import Path
 
 
+def _real_peak(r: dict) -> bool:
+    """A confinement's largest q is a strength: brittle or followed by a plateau."""
+    if "post_peak_behaviour" in r:
+        return r["post_peak_behaviour"] != "hardening"
+    return bool(r["peaked"])
+
+
 def pool(folders: list[str]) -> dict:
     from jaxgran.scenes.interface import mohr_envelope_fits
 
@@ -26,8 +34,11 @@ def pool(folders: list[str]) -> dict:
         d = json.loads((Path(folder) / "summary.json").read_text())
         a, c = d["peak_sigma1_Pa"], d["peak_sigma3_Pa"]
         per = d["per_confinement"]
-        # confinements first, then the unconfined and tension circles (true peaks)
-        peaked = [r["peaked"] for r in per] + [True] * (len(a) - len(per))
+        # confinements first, then the unconfined and tension circles (true peaks); a
+        # confinement counts where it peaked (summaries before post_peak_behaviour: where it
+        # ended on a drop)
+        real = [_real_peak(r) for r in per]
+        peaked = real + [True] * (len(a) - len(per))
         s1 += a
         s3 += c
         s1p += [x for x, k in zip(a, peaked, strict=True) if k]
@@ -38,7 +49,8 @@ def pool(folders: list[str]) -> dict:
                 "bond": d.get("bond"),
                 "ucs_Pa": d.get("ucs_Pa"),
                 "tensile_strength_Pa": d.get("tensile_strength_Pa"),
-                "peaked": [r["peaked"] for r in per],
+                "peaked": real,
+                "post_peak_behaviour": [r.get("post_peak_behaviour") for r in per],
             }
         )
     return {

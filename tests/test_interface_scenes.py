@@ -97,6 +97,48 @@ def test_confined_run_ends_on_a_sustained_drop_not_on_a_stick_slip_dip():
     assert track["peaked"]
 
 
+def test_post_peak_behaviour_tells_brittle_plateau_softening_and_hardening_apart(tmp_path):
+    """A peak followed by a drop that lasts the drop window is brittle; otherwise the slope
+    of q over the last 2 % of strain decides: a change under 10 % of the peak across it is a
+    plateau (whatever the stick-slip dips), a rise is hardening (not a strength), a fall
+    softening. The records go to curves.h5 with the measures as attributes."""
+    import h5py
+
+    from jaxgran.scenes import interface_compression as ic
+
+    strain = np.linspace(0.0, 0.10, 1001)
+
+    def behaviour(q):
+        track = ic.new_drop_track()
+        stop, ended = strain.size, False
+        for k in range(0, strain.size, 10):
+            seg = slice(k, k + 10)
+            if ic.sustained_drop(track, q[seg], strain[seg], True, 0.7, 0.005):
+                stop, ended = k + 10, True
+                break
+        return ic.post_peak_behaviour(strain[:stop], q[:stop], ended, 0.02, 0.1)
+
+    rise = np.minimum(3e9 * strain, 150e6)  # linear to 150 MPa at 5 %
+    plateau = np.where(strain > 0.06, 0.85 * 150e6, rise)
+    plateau = np.where((strain > 0.09) & (strain < 0.093), 0.5 * 150e6, plateau)  # a dip
+    assert behaviour(plateau) == "plateau"
+    assert behaviour(np.where(strain > 0.06, 0.3 * 150e6, rise)) == "brittle"
+    assert behaviour(3e9 * strain) == "hardening"  # still rising at the limit
+    # a slow change from 6 % on: 5 % of 150 MPa across the window is a plateau, 20 % is
+    # hardening, -11 % softening (q ends at 0.78 of its peak: no sustained drop)
+    for per_window, expected in ((0.05, "plateau"), (0.2, "hardening"), (-0.11, "softening")):
+        q = rise + np.where(strain > 0.06, per_window * 150e6 * (strain - 0.06) / 0.02, 0.0)
+        assert behaviour(q) == expected
+    # the stored record reads back
+    per = [{"sigma3_target_Pa": 2e7, "post_peak_behaviour": "plateau", "peaked": False}]
+    rec = [(2e7, strain, strain, plateau + 2e7, np.full(strain.size, 2e7))]
+    ic.write_curves(tmp_path / "curves.h5", rec, per)
+    with h5py.File(tmp_path / "curves.h5", "r") as f:
+        g = f["sigma3_20MPa"]
+        assert np.allclose(g["deviator"][()], plateau) and g["deviator"].attrs["units"] == "Pa"
+        assert g.attrs["post_peak_behaviour"] == "plateau" and not g.attrs["peaked"]
+
+
 def test_particles_thrown_towards_the_grid_edge_are_taken_out():
     """A fragment flying off an unconfined specimen is deactivated once it comes within half
     the grid margin of the grid's edge (the run would otherwise stop on it); nothing else

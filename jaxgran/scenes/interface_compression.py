@@ -18,15 +18,14 @@ strain after elements failed (a stick-slip dip that recovers does not end it). S
 compression positive, each the mean of its two walls' ``-F . n / (l T)`` with l the current
 specimen size. Reported per confinement: the peak axial stress s1 (at the largest q of the run),
 the lateral stress there, whether the run ended on a drop after the peak (``peaked``; otherwise
-s1 is the stress at ``max_strain``, a lower bound of the strength) and the post-peak ratio (mean
+it ran to ``max_strain``), the post-peak ratio (mean
 q over the last 20 % of the strain over the peak: near 1 is a plateau or hardening, low is
-brittle).
-
-With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
-of the same specimen (with the same platen friction) add their Mohr circles, and the peak
-circles are fitted with the linear Mohr-Coulomb line and the quadratic parabola
-(:func:`jaxgran.scenes.interface.mohr_envelope_fits`): R^2 of each, for ``--set bond=...``,
-on all circles (``envelope_*``) and on the real peaks only (``envelope_peaks_only_*``).
+brittle) and ``post_peak_behaviour`` (:func:`post_peak_behaviour`): brittle (ended on the
+drop), or, judged on the slope of q over the last ``plateau_strain`` of the run, hardening,
+plateau or softening; all but hardening count as real peaks in the peaks-only envelope.
+``max_strain`` is 10 % since 2026-12-06 (3 % before: too short for the confined disc
+specimens to show what follows their peak; ``benchmarks/INTERFACE_ENVELOPE_RESULTS.md``).
+The stress-strain record of every confinement is in ``curves.h5``.
 """
 
 from __future__ import annotations
@@ -61,7 +60,7 @@ class Config(si.Common):
     height: float = 0.05  # m
     confinements: tuple = (2.0e6, 5.0e6, 10.0e6, 20.0e6, 40.0e6)  # Pa, sigma3
     strain_rate: float = 2.0  # 1/s
-    max_strain: float = 0.03
+    max_strain: float = 0.10
     drop_fraction: float = 0.7  # stop below this x the peak deviator (after the peak)
     iso_tolerance: float = 0.02  # isotropic stage ends when every wall is this close
     iso_max_time: float = 6.0e-3  # s
@@ -74,6 +73,10 @@ class Config(si.Common):
     servo_integral: float = 4.0
     side_friction: float = 0.0  # side walls (the membrane: frictionless)
     post_peak_strain: float = 0.005  # stop once q stays below drop_fraction x peak this long
+    # the last plateau_strain of a run that reaches max_strain: q changing across it by under
+    # plateau_band x its largest value is a plateau, more is hardening or softening
+    plateau_strain: float = 0.02
+    plateau_band: float = 0.1
     with_tension: bool = True  # also direct tension of the same specimen (a circle)
     with_uniaxial: bool = True  # also unconfined compression (a circle)
 
@@ -82,6 +85,7 @@ QUICK = {
     "width": 0.015,
     "height": 0.03,
     "confinements": (5.0e6, 20.0e6),
+    "max_strain": 0.03,
     "record_every": 25,
     "records_per_segment": 8,
     "with_tension": False,
@@ -168,6 +172,29 @@ def sustained_drop(track: dict, q, strain, failed: bool, fraction: float, window
     return track["peaked"]
 
 
+def post_peak_behaviour(strain, q, ended_on_drop: bool, window: float, band: float) -> str:
+    """What the deviator does after its largest value in one shearing record (axial
+    ``strain`` and ``q`` in Pa, in order): ``"brittle"`` where the run ended on a sustained
+    drop (:func:`sustained_drop`); otherwise the straight line fitted to q over the last
+    ``window`` of axial strain changes, across that window, by ``delta`` (a fraction of the
+    largest q): ``"hardening"`` for ``delta >= band`` (q still rising at the end: the largest
+    q is a lower bound of the strength), ``"softening"`` for ``delta <= -band`` and
+    ``"plateau"`` in between (the ductile residual state; its level is the post-peak ratio).
+    A record shorter than ``window`` is judged on all of it."""
+    strain, q = np.asarray(strain, float), np.asarray(q, float)
+    if ended_on_drop:
+        return "brittle"
+    peak = float(np.max(q))
+    tail = strain >= strain[-1] - window
+    if tail.sum() < 2 or not peak > 0:
+        return "hardening"
+    slope = np.polyfit(strain[tail], q[tail], 1)[0]
+    delta = slope * min(window, float(strain[-1] - strain[0])) / peak
+    if delta >= band:
+        return "hardening"
+    return "softening" if delta <= -band else "plateau"
+
+
 def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = False) -> dict:
     """Isotropic stage to sigma3, then strain-controlled axial loading; returns the series
     (both stages), the final state, the setup and the record index where shearing began."""
@@ -239,7 +266,9 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
     }
 
 
-def measure_confined(out: dict, thickness: float) -> dict:
+def measure_confined(
+    out: dict, thickness: float, plateau_strain: float = 0.02, plateau_band: float = 0.1
+) -> dict:
     s_ax, s_lat, h = box_stress(out["series"], thickness)
     k0 = out["start"]
     s_ax, s_lat, h = s_ax[k0:], s_lat[k0:], h[k0:]
@@ -256,6 +285,11 @@ def measure_confined(out: dict, thickness: float) -> dict:
         # True: the run ended on a sustained drop after the peak (a brittle peak); False: on
         # max_strain, so sigma1_peak is the largest stress so far (a lower bound)
         "peaked": bool(out.get("peaked", False)),
+        # axial strain run after the largest q, and what the record did there
+        "post_peak_strain_span": float(strain[-1] - strain[k]),
+        "post_peak_behaviour": post_peak_behaviour(
+            strain, q, bool(out.get("peaked", False)), plateau_strain, plateau_band
+        ),
     }
     res.update(itf.element_summary(out["state"].bonds))
     return res
@@ -271,7 +305,8 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
     for s3 in cfg.confinements:
         out = run_confined(cfg, float(s3), spec, progress=progress)
         runs.append(out)
-        per.append({"sigma3_target_Pa": float(s3), **measure_confined(out, mat.thickness)})
+        m = measure_confined(out, mat.thickness, cfg.plateau_strain, cfg.plateau_band)
+        per.append({"sigma3_target_Pa": float(s3), **m})
     s1 = [p["sigma1_peak_Pa"] for p in per]
     s3 = [p["sigma3_at_peak_Pa"] for p in per]
     extra = {}
@@ -303,9 +338,9 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
     if "ucs_Pa" in extra and "tensile_strength_Pa" in extra:
         extra["ucs_over_tensile_strength"] = extra["ucs_Pa"] / extra["tensile_strength_Pa"]
     fits = si.mohr_envelope_fits(s1, s3)
-    # the same fits on the circles of real peaks only (the confined runs that ended on a drop,
-    # plus tension and unconfined)
-    keep = [p["peaked"] for p in per] + [True] * (len(s1) - len(per))
+    # the same fits on the circles of real peaks only (the confined runs that did not end
+    # still hardening, plus tension and unconfined)
+    keep = [p["post_peak_behaviour"] != "hardening" for p in per] + [True] * (len(s1) - len(per))
     peaks = si.mohr_envelope_fits(
         [a for a, k in zip(s1, keep, strict=True) if k],
         [a for a, k in zip(s3, keep, strict=True) if k],
@@ -320,6 +355,30 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
         "peaked": keep,  # per circle: confinements, then unconfined and tension (True)
         **extra,
     }
+
+
+def write_curves(path: Path, records: list, per: list[dict]) -> Path:
+    """The shearing record of every confinement in one HDF5 file, a group per confinement
+    (``sigma3_<MPa>``, in the order run) with ``time`` (s), ``axial_strain`` (-),
+    ``sigma_axial``, ``sigma_lateral`` and ``deviator`` (Pa, compression positive) and the
+    confinement's measures (``per_confinement`` of summary.json) as attributes."""
+    import h5py
+
+    with h5py.File(path, "w", track_order=True) as f:
+        for (s3, t, strain, s_ax, s_lat), m in zip(records, per, strict=True):
+            g = f.create_group(f"sigma3_{s3 / 1e6:g}MPa")
+            for name, val, unit in (
+                ("time", t, "s"),
+                ("axial_strain", strain, "1"),
+                ("sigma_axial", s_ax, "Pa"),
+                ("sigma_lateral", s_lat, "Pa"),
+                ("deviator", s_ax - s_lat, "Pa"),
+            ):
+                g.create_dataset(name, data=np.asarray(val, float)).attrs["units"] = unit
+            for k, v in m.items():
+                if isinstance(v, (bool, int, float, str)):
+                    g.attrs[k] = v
+    return path
 
 
 def _names(cls) -> set[str]:
@@ -354,11 +413,14 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
 
     curves = {}
     T = cfg.thickness
+    records = []
     for s3, out in zip(cfg.confinements, runs, strict=True):
         s_ax, s_lat, h = box_stress(out["series"], T)
         k0 = out["start"]
         strain = 1.0 - h[k0:] / out["height0"]
         curves[f"sigma3 = {s3 / 1e6:g} MPa"] = (100 * strain, (s_ax - s_lat)[k0:] / 1e6)
+        records.append((float(s3), out["series"]["time"][k0:], strain, s_ax[k0:], s_lat[k0:]))
+    write_curves(Path(out_dir) / "curves.h5", records, env["per_confinement"])
     peaked = env["peaked"]
     some = "linear_r2" in env["fits_peaks"] and not all(peaked)
     shown, which = (env["fits_peaks"], "the black (peak)") if some else (env["fits"], "all")

@@ -189,6 +189,8 @@ SETTINGS: dict[str, Rule] = {
     "break_fraction": FRACTION,
     "compare_fraction": UNIT,
     "post_peak_strain": POSITIVE,
+    "plateau_strain": POSITIVE,
+    "plateau_band": POSITIVE,
     "platen_speed": POSITIVE,
     "bar_speed": POSITIVE,
     "load_time": POSITIVE,
