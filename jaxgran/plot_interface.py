@@ -87,7 +87,8 @@ def plot_cracks(state, elements: dict, path: Path, stages=None) -> Path:
 def plot_mohr(sigma_1, sigma_3, fits: dict, path: Path, title: str = "", peaked=None) -> Path:
     """Peak Mohr circles (compression positive, MPa) with the fitted linear and parabolic
     envelopes (:func:`jaxgran.scenes.interface.mohr_envelope_fits`); circles whose
-    ``peaked`` is False (stress at the strain limit, no peak) are drawn grey and dashed."""
+    ``peaked`` is False (still hardening at the strain limit: no peak, a lower bound) are
+    drawn grey and dashed."""
     s1, s3 = np.asarray(sigma_1, float) / 1e6, np.asarray(sigma_3, float) / 1e6
     peaked = np.ones(s1.size, bool) if peaked is None else np.asarray(peaked, bool)
     fig, ax = plt.subplots(figsize=(7, 4))

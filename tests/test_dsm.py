@@ -301,6 +301,22 @@ def test_force_chain_field_follows_the_brazilian_disc_solution():
                 n_elements=CFG.n_elements, n_points=200, max_contacts=1,
             )  # fmt: skip
             np.testing.assert_array_equal(short["intensity"], field["intensity"])
+            # too few elements for the core are raised to twice its vertices, not refused
+            nv = int(state.particles.n_verts[0])
+            assert 2 * nv > 8
+            few, enough = (
+                force_chain_field(
+                    state,
+                    params,
+                    poisson_ratio=CFG.poisson_ratio,
+                    thickness=t,
+                    n_elements=n_el,
+                    n_points=200,
+                )  # fmt: skip
+                for n_el in (8, 2 * nv)
+            )
+            assert not few["skipped"]
+            np.testing.assert_array_equal(few["intensity"], enough["intensity"])
         xy = field["points"] - np.asarray(state.particles.pos[0])
         near = np.linalg.norm(xy, axis=1) < 0.15 * CFG.disc_radius
         assert near.sum() >= 3

@@ -40,7 +40,9 @@ def force_chain_field(
             the current springs).
         poisson_ratio: nu of the grains (-).
         thickness: out-of-plane thickness (m): stresses are force per unit thickness / t.
-        n_elements, n_points: boundary elements and sample points per particle.
+        n_elements, n_points: boundary elements and sample points per particle (the
+            elements are raised to twice the vertices of a core that has more, as the DSM
+            raises them: fragments of an adaptive radius keep arc vertices).
         max_contacts: contact list per particle to start with; grown to the next power
             of two when a particle has more vertex contacts (its field would miss forces).
         plane: ``"stress"`` or ``"strain"``.
@@ -72,7 +74,8 @@ def force_chain_field(
     for s in np.flatnonzero(active & (mask.sum(axis=1) >= 2)).tolist():
         v = verts[s, : n_verts[s]]
         m = mask[s]
-        pts, _ = bem.sample_points(v, radius[s], n_elements, n_points=n_points)
+        n_el = max(int(n_elements), 2 * len(v))
+        pts, _ = bem.sample_points(v, radius[s], n_el, n_points=n_points)
         if len(pts) == 0:  # a chip thinner than the band kept clear of the outline
             skipped.append((s, "no sample point inside (grain too small for n_elements)"))
             continue
@@ -84,7 +87,7 @@ def force_chain_field(
                 pts,
                 poisson_ratio=poisson_ratio,
                 plane=plane,
-                n_elements=n_elements,
+                n_elements=n_el,
                 thickness=thickness,
                 radius=radius[s],
             )
