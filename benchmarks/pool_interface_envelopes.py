@@ -7,8 +7,8 @@ only (:func:`jaxgran.scenes.interface.mohr_envelope_fits`):
     python benchmarks/pool_interface_envelopes.py runs/itf_s0 runs/itf_s1 runs/itf_s2
 
 Prints one JSON object: circles, R^2 of both fits on all circles and on the peaks only, and
-per run the UCS, the tensile strength and which confinements peaked (ended on a drop or on
-a plateau: ``post_peak_behaviour``).
+per run the UCS, the tensile strength and which confinements peaked (``post_peak_behaviour``
+other than hardening).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 
 
 def _real_peak(r: dict) -> bool:
-    """A confinement's largest q is a strength: brittle or followed by a plateau."""
+    """A confinement's largest q is a strength unless the run was still hardening."""
     if "post_peak_behaviour" in r:
         return r["post_peak_behaviour"] != "hardening"
     return bool(r["peaked"])

@@ -26,6 +26,12 @@ plateau or softening; all but hardening count as real peaks in the peaks-only en
 ``max_strain`` is 10 % since 2026-12-06 (3 % before: too short for the confined disc
 specimens to show what follows their peak; ``benchmarks/INTERFACE_ENVELOPE_RESULTS.md``).
 The stress-strain record of every confinement is in ``curves.h5``.
+
+With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
+of the same specimen (with the same platen friction) add their Mohr circles, and the peak
+circles are fitted with the linear Mohr-Coulomb line and the quadratic parabola
+(:func:`jaxgran.scenes.interface.mohr_envelope_fits`): R^2 of each, for ``--set bond=...``,
+on all circles (``envelope_*``) and on the real peaks only (``envelope_peaks_only_*``).
 """
 
 from __future__ import annotations
@@ -283,7 +289,7 @@ def measure_confined(
         "final_strain": float(strain[-1]),
         "post_peak_ratio": float(q[tail].mean() / q[k]) if q[k] > 0 else math.nan,
         # True: the run ended on a sustained drop after the peak (a brittle peak); False: on
-        # max_strain, so sigma1_peak is the largest stress so far (a lower bound)
+        # max_strain (sigma1_peak is a lower bound where post_peak_behaviour is hardening)
         "peaked": bool(out.get("peaked", False)),
         # axial strain run after the largest q, and what the record did there
         "post_peak_strain_span": float(strain[-1] - strain[k]),
