@@ -82,7 +82,7 @@ class Config(si.Common):
     # the last plateau_strain of a run that reaches max_strain: q changing across it by under
     # plateau_band x its largest value is a plateau, more is hardening or softening
     plateau_strain: float = 0.02
-    plateau_band: float = 0.1
+    plateau_band: float = 0.1  # fraction of the largest q: plateau, hardening or softening
     with_tension: bool = True  # also direct tension of the same specimen (a circle)
     with_uniaxial: bool = True  # also unconfined compression (a circle)
 
