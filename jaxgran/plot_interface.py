@@ -74,13 +74,19 @@ def plot_cracks(state, elements: dict, path: Path, stages=None) -> Path:
     for ax, (title, t) in zip(axes[0], stages, strict=True):
         _particles(ax, state)
         done = elements["time"] <= t
+        drawn = False
         for code, (name, colour) in MODE_COLOURS.items():
             sel = done & (elements["mode"] == code)
             if sel.any():
                 x = elements["pos"][sel] * 1e3
                 ax.plot(x[:, 0], x[:, 1], "s", ms=3, color=colour, label=f"{name} ({sel.sum()})")
+                drawn = True
         ax.set_title(title, fontsize=9)
-        ax.legend(fontsize=7, loc="upper right")
+        if drawn:
+            ax.legend(fontsize=7, loc="upper right")
+        else:
+            ax.text(0.5, 1.01, "no element failed", transform=ax.transAxes, ha="center",
+                    va="bottom", fontsize=7)  # fmt: skip
     return _save(fig, path)
 
 
