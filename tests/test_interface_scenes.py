@@ -2,7 +2,8 @@
 models run, and the plate-contact disc (the default Voronoi mesh) carries the closed-form
 splitting stress on its axis, splits along it and has its shear failures under the plates;
 confined compression runs end to end under its servo walls. Quick specimens (28 elementary
-discs; 120 Voronoi cells; 120 discs for the packing's xfail; a 28-disc block) keep the compilations few."""
+discs, in tension and in compression; 120 Voronoi cells; 120 discs for the packing's xfail)
+keep the compilations few."""
 
 import dataclasses
 import json
