@@ -97,6 +97,16 @@ def test_confined_run_ends_on_a_sustained_drop_not_on_a_stick_slip_dip():
     assert track["best"] == pytest.approx(30e6)
     assert stops and 0.025 <= stops[0] < 0.0265  # 0.5 % of strain after the collapse
     assert track["peaked"]
+    # with a floor of 40 MPa (sigma3 = 40 MPa, drop_min_q = 1) that 30 MPa peak is not a
+    # strength: the same record runs on; a peak above the floor arms the stop again
+    track = ic.new_drop_track()
+    assert not ic.sustained_drop(track, q, strain, True, 0.7, 0.005, 40e6)
+    assert not track["peaked"]
+    later = np.concatenate([strain, 0.03 + strain[1:]])
+    q2 = np.concatenate([q, np.where(strain[1:] < 0.01, 50e6, 20e6)])  # 50 MPa, then 20
+    track = ic.new_drop_track()
+    assert ic.sustained_drop(track, q2, later, True, 0.7, 0.005, 40e6)
+    assert track["best"] == pytest.approx(50e6)
 
 
 def test_post_peak_behaviour_tells_brittle_plateau_softening_and_hardening_apart(tmp_path):

@@ -14,7 +14,8 @@ lateral servo walls hold sigma3. In the shearing the lateral servo is proportion
 specimen that dilates while it is sheared, by ``dilation rate / gain`` (on Voronoi cells it held
 4.7 MPa for a 2 MPa target at the peak). The shearing ends at ``max_strain``, or once the
 deviator q has stayed below ``drop_fraction`` of its peak for ``post_peak_strain`` of axial
-strain after elements failed (a stick-slip dip that recovers does not end it). Stresses are
+strain after elements failed and q passed ``drop_min_q x sigma3`` (a stick-slip dip that
+recovers does not end it, nor does a collapse of the fabric at a small q). Stresses are
 compression positive, each the mean of its two walls' ``-F . n / (l T)`` with l the current
 specimen size. Reported per confinement: the peak axial stress s1 (at the largest q of the run),
 the lateral stress there, whether the run ended on a drop after the peak (``peaked``; otherwise
@@ -79,6 +80,11 @@ class Config(si.Common):
     servo_integral: float = 4.0
     side_friction: float = 0.0  # side walls (the membrane: frictionless)
     post_peak_strain: float = 0.005  # stop once q stays below drop_fraction x peak this long
+    # the drop stops a run only once q has passed drop_min_q x sigma3: below that no
+    # Mohr-Coulomb material with phi >= 19.5 deg (sin phi >= 1/3) has failed, so a drop
+    # there is a collapse of the fabric that the specimen recovers from, not its strength
+    # (seed 3 at 40 MPa: q 2 MPa, then -10 MPa, rising again; 0 arms it from the start)
+    drop_min_q: float = 1.0
     # the last plateau_strain of a run that reaches max_strain: q changing across it by under
     # plateau_band x its largest value is a plateau, more is hardening or softening
     plateau_strain: float = 0.02
@@ -160,15 +166,18 @@ def new_drop_track() -> dict:
     return {"best": -np.inf, "below_since": None, "peaked": False}
 
 
-def sustained_drop(track: dict, q, strain, failed: bool, fraction: float, window: float) -> bool:
+def sustained_drop(
+    track: dict, q, strain, failed: bool, fraction: float, window: float, floor: float = 0.0
+) -> bool:
     """Feed the records of one segment (deviator ``q`` in Pa and axial ``strain``, in order);
     True once q has stayed below ``fraction`` of its running peak over at least ``window`` of
     strain (a dip that recovers within ``window`` resets the count). Drops count only when
-    ``failed`` (some element broke) and the peak is positive. Updates ``track`` (also its
-    ``peaked`` flag)."""
+    ``failed`` (some element broke) and the peak is above ``floor`` (Pa, at least 0).
+    Updates ``track`` (also its ``peaked`` flag)."""
+    floor = max(float(floor), 0.0)
     for qk, ek in zip(np.asarray(q, float), np.asarray(strain, float), strict=True):
         track["best"] = max(track["best"], float(qk))
-        low = failed and track["best"] > 0 and qk < fraction * track["best"]
+        low = failed and track["best"] > floor and qk < fraction * track["best"]
         if not low:
             track["below_since"] = None
         elif track["below_since"] is None:
@@ -252,7 +261,13 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
         s_ax, s_lat, h = box_stress(rec, T)
         failed = si.n_damaged(state) > damaged0
         past = sustained_drop(
-            track, s_ax - s_lat, 1.0 - h / h0, failed, cfg.drop_fraction, cfg.post_peak_strain
+            track,
+            s_ax - s_lat,
+            1.0 - h / h0,
+            failed,
+            cfg.drop_fraction,
+            cfg.post_peak_strain,
+            cfg.drop_min_q * sigma3,
         )
         return state, bool(past or 1.0 - h[-1] / h0 >= cfg.max_strain)
 

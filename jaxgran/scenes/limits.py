@@ -189,6 +189,7 @@ SETTINGS: dict[str, Rule] = {
     "break_fraction": FRACTION,
     "compare_fraction": UNIT,
     "post_peak_strain": POSITIVE,
+    "drop_min_q": NON_NEGATIVE,
     "plateau_strain": POSITIVE,
     "plateau_band": POSITIVE,
     "platen_speed": POSITIVE,
