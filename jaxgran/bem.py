@@ -807,6 +807,12 @@ def _check_poisson(poisson_ratio) -> float:
     return nu
 
 
+def min_elements(n_vertices: int) -> int:
+    """Fewest boundary elements the solver takes for a core of ``n_vertices`` vertices: two
+    per vertex (an edge and a corner arc each need one), at least 8."""
+    return max(8, 2 * int(n_vertices))
+
+
 def _check_particle(vertices, radius, n_elements) -> tuple[np.ndarray, float]:
     """Validated CCW core ``[n, 2]`` (float64) and radius of one spheropolygon."""
     radius = float(radius)
@@ -832,10 +838,10 @@ def _check_particle(vertices, radius, n_elements) -> tuple[np.ndarray, float]:
     else:
         v = v[:1]
     n_elements = int(n_elements)
-    if n_elements < max(8, 2 * len(v)):
+    if n_elements < min_elements(len(v)):
         raise ValueError(
             f"n_elements={n_elements} is too small for a core of {len(v)} vertices; use at "
-            f"least {max(8, 2 * len(v))} (64-128 is typical)"
+            f"least {min_elements(len(v))} (64-128 is typical)"
         )
     return v, radius
 

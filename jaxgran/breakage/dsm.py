@@ -727,7 +727,7 @@ class DsmBreakage:
         )
 
     def _fit_elements(self, state: SimState) -> None:
-        need = max(8, 2 * state.particles.verts.shape[1])
+        need = bem.min_elements(state.particles.verts.shape[1])
         if self.n_elements < need:
             new = -(-need // 8) * 8
             self._note(

@@ -74,7 +74,7 @@ def force_chain_field(
     for s in np.flatnonzero(active & (mask.sum(axis=1) >= 2)).tolist():
         v = verts[s, : n_verts[s]]
         m = mask[s]
-        n_el = max(int(n_elements), 2 * len(v))
+        n_el = max(int(n_elements), bem.min_elements(len(v)))
         pts, _ = bem.sample_points(v, radius[s], n_el, n_points=n_points)
         if len(pts) == 0:  # a chip thinner than the band kept clear of the outline
             skipped.append((s, "no sample point inside (grain too small for n_elements)"))
