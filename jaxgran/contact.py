@@ -243,15 +243,28 @@ def _frames_soa(wx, wy, n_verts):
 
 
 def _materialise(arrays: tuple) -> tuple:
-    """The same arrays, computed once into memory. Without this XLA's CPU backend fuses the
-    per-particle world vertices and edge frames (rotation, sqrt, division) into every gather
-    of their per-pair copies and recomputes them per gathered element, which cost about 40 %
-    of a contact step. A product with the identity is a library call that fusion does not
-    enter (an optimization barrier is removed before fusion on CPU); it is exact."""
+    """The same arrays (all of one shape), computed once into memory. Without this XLA's
+    CPU backend fuses a producer into each of its consumers and recomputes it there per
+    element: the per-particle world vertices and edge frames (rotation, sqrt, division) into
+    every gather of their per-pair copies (about 40 % of a contact step), and the
+    closest-feature selects and the lever arms into every value of the contact law on the
+    compacted list (about 40 % of the step of a small scene). A product with the identity is
+    a library call that fusion does not enter (an optimization barrier is removed before
+    fusion on CPU). It is exact for finite values; an infinite or NaN entry spreads to the
+    same position of the others (``inf x 0``), so callers pass finite arrays."""
     stacked = jnp.stack(arrays)
     eye = jnp.eye(len(arrays), dtype=stacked.dtype)
     out = jnp.einsum("k...,kl->l...", stacked, eye, precision=jax.lax.Precision.HIGHEST)
-    return out[0], out[1], tuple(out[2:])
+    return tuple(out)
+
+
+def _compacted(ok: Array, arrays: tuple) -> tuple:
+    """The per-entry inputs of the contact law on a compacted list, zero where ``ok`` is
+    False (the padding entries read the last slot, whose values may be infinite) and
+    materialised (:func:`_materialise`): the law, the corner weights and the scatters then
+    read them from memory instead of each recomputing the gathers and what feeds them."""
+    dtype = arrays[0].dtype
+    return _materialise(tuple(jnp.where(ok, a, jnp.zeros((), dtype)) for a in arrays))
 
 
 def _pair_geometry_soa(wx, wy, nv, frames, i, j):
@@ -261,7 +274,7 @@ def _pair_geometry_soa(wx, wy, nv, frames, i, j):
     where two corners meet. Returns gap, normal, closest point, real-slot mask, whether the
     closest point is inside an edge, the distance along that edge to its nearer end and the
     unit vector along which that distance grows with the vertex position."""
-    wx, wy, frames = _materialise((wx, wy) + tuple(frames))
+    wx, wy, *frames = _materialise((wx, wy) + tuple(frames))
     fi = tuple(f[i] for f in frames)
     fj = tuple(f[j] for f in frames)
     xi_, yi_, ni = wx[i], wy[i], nv[i]
@@ -409,11 +422,21 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
     v_rel = rel_vel(p.vel, p.omega)
     v_damp = v_rel if damp_velocity is None else rel_vel(*damp_velocity)
     flat_xi = xi.reshape(2, -1)
+    # the law's inputs per entry, computed once (_compacted); zero on the padding entries
+    dtype = ov.dtype
+    inputs = (ov, cnx, cny, xcx, xcy, m_eff, rox, roy, rtx, rty, p.radius[own], r_oth)
+    inputs += (flat_xi[0, at], flat_xi[1, at], take(interior).astype(dtype), take(s_end))
+    inputs += (take(ex), take(ey)) + v_rel + (() if damp_velocity is None else v_damp)
+    inputs = _compacted(ok, inputs)
+    ov, cnx, cny, xcx, xcy, m_eff, rox, roy, rtx, rty, r_own, r_oth = inputs[:12]
+    xi0x, xi0y, interior_c, s_end_c, ex_c, ey_c = inputs[12:18]
+    v_rel = inputs[18:20]
+    v_damp = v_rel if damp_velocity is None else inputs[20:22]
     (fx, fy), (xx, xy), fn, terms = contact_law(
         ov,
         (cnx, cny),
         v_rel,
-        (flat_xi[0, at], flat_xi[1, at]),
+        (xi0x, xi0y),
         m_eff,
         ok,
         params.normal_stiffness,
@@ -429,22 +452,21 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
     # w e, e = (K_n delta^2 + K_t |xi|^2) / 2, depends on the vertex's position in the other
     # body's frame through delta (along n) and through s (along e_dir), so the owner gets
     # (w_d e) n - (w_s e) e_dir, applied at its vertex, and the other body the opposite
-    r_sum = p.radius[own] + r_oth
-    w, w_s, w_d = corner_weight(take(interior), take(s_end), ov, r_sum)
+    r_sum = r_own + r_oth
+    w, w_s, w_d = corner_weight(interior_c > 0.5, s_end_c, ov, r_sum)
     w = jnp.where(ok, w, 0.0)
     e = 0.5 * (
         params.normal_stiffness * ov * ov + params.tangential_stiffness * (xx * xx + xy * xy)
     )
     e = jnp.where(ok, e, 0.0)
-    gx = w_d * e * cnx - w_s * e * take(ex)
-    gy = w_d * e * cny - w_s * e * take(ey)
+    gx = w_d * e * cnx - w_s * e * ex_c
+    gy = w_d * e * cny - w_s * e * ey_c
     fx, fy, fn = w * fx + gx, w * fy + gy, w * fn
     terms = {k: w * v for k, v in terms.items()}
     # the along-edge part acts at the vertex, (r_own - delta / 2) n from the contact point
-    lever = p.radius[own] - 0.5 * ov
-    tx_, ty_ = -w_s * e * take(ex), -w_s * e * take(ey)
+    lever = r_own - 0.5 * ov
+    tx_, ty_ = -w_s * e * ex_c, -w_s * e * ey_c
     couple = lever * (cnx * ty_ - cny * tx_)
-    dtype = fx.dtype
     force = jnp.stack([fx, fy], axis=-1)
     f = jnp.zeros((n_p, 2), dtype).at[own].add(force).at[oth].add(-force)
     t = (
@@ -548,12 +570,18 @@ def wall_forces(
     mu_w = jnp.asarray(params.wall_friction)  # scalar, or one per wall [W]
     if mu_w.ndim == 1 and mu_w.shape[0] != n_w:  # static shapes: checked at trace time
         raise ValueError(f"wall_friction has {mu_w.shape[0]} values for {n_w} walls")
+    # the law's inputs per entry, computed once (see _pair_kernel)
+    inputs = (ov, cnx, cny, xcx, xcy, rx, ry, p.mass[pi], flat_xi[0, at], flat_xi[1, at])
+    inputs = _compacted(ok, inputs + v_rel + (() if damp_velocity is None else v_damp))
+    ov, cnx, cny, xcx, xcy, rx, ry, mass, xi0x, xi0y = inputs[:10]
+    v_rel = inputs[10:12]
+    v_damp = v_rel if damp_velocity is None else inputs[12:14]
     (fx, fy), (xx, xy), fn, terms = contact_law(
         ov,
         (cnx, cny),
         v_rel,
-        (flat_xi[0, at], flat_xi[1, at]),
-        p.mass[pi],
+        (xi0x, xi0y),
+        mass,
         ok,
         params.normal_stiffness,
         params.tangential_stiffness,
