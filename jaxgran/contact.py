@@ -258,13 +258,15 @@ def _materialise(arrays: tuple) -> tuple:
     return tuple(out)
 
 
-def _compacted(ok: Array, arrays: tuple) -> tuple:
-    """The per-entry inputs of the contact law on a compacted list, zero where ``ok`` is
-    False (the padding entries read the last slot, whose values may be infinite) and
-    materialised (:func:`_materialise`): the law, the corner weights and the scatters then
-    read them from memory instead of each recomputing the gathers and what feeds them."""
-    dtype = arrays[0].dtype
-    return _materialise(tuple(jnp.where(ok, a, jnp.zeros((), dtype)) for a in arrays))
+def _compacted(ok: Array, **arrays: Array) -> dict[str, Array]:
+    """The per-entry inputs of the contact law on a compacted list (by name, one shape),
+    zero where ``ok`` is False (the padding entries read the last slot, whose values may be
+    infinite) and materialised (:func:`_materialise`): the law, the corner weights and the
+    scatters then read them from memory instead of each recomputing the gathers and what
+    feeds them."""
+    zero = jnp.zeros((), next(iter(arrays.values())).dtype)
+    out = _materialise(tuple(jnp.where(ok, a, zero) for a in arrays.values()))
+    return dict(zip(arrays, out, strict=True))
 
 
 def _pair_geometry_soa(wx, wy, nv, frames, i, j):
@@ -424,19 +426,25 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
     flat_xi = xi.reshape(2, -1)
     # the law's inputs per entry, computed once (_compacted); zero on the padding entries
     dtype = ov.dtype
-    inputs = (ov, cnx, cny, xcx, xcy, m_eff, rox, roy, rtx, rty, p.radius[own], r_oth)
-    inputs += (flat_xi[0, at], flat_xi[1, at], take(interior).astype(dtype), take(s_end))
-    inputs += (take(ex), take(ey)) + v_rel + (() if damp_velocity is None else v_damp)
-    inputs = _compacted(ok, inputs)
-    ov, cnx, cny, xcx, xcy, m_eff, rox, roy, rtx, rty, r_own, r_oth = inputs[:12]
-    xi0x, xi0y, interior_c, s_end_c, ex_c, ey_c = inputs[12:18]
-    v_rel = inputs[18:20]
-    v_damp = v_rel if damp_velocity is None else inputs[20:22]
+    damped = {} if damp_velocity is None else {"vdx": v_damp[0], "vdy": v_damp[1]}
+    c = _compacted(
+        ok,
+        ov=ov, cnx=cnx, cny=cny, xcx=xcx, xcy=xcy, m_eff=m_eff,
+        rox=rox, roy=roy, rtx=rtx, rty=rty, r_own=p.radius[own], r_oth=r_oth,
+        xi0x=flat_xi[0, at], xi0y=flat_xi[1, at], interior=take(interior).astype(dtype),
+        s_end=take(s_end), ex=take(ex), ey=take(ey), vx=v_rel[0], vy=v_rel[1], **damped,
+    )  # fmt: skip
+    ov, cnx, cny, xcx, xcy, m_eff = (c[k] for k in ("ov", "cnx", "cny", "xcx", "xcy", "m_eff"))
+    rox, roy, rtx, rty, r_own, r_oth = (
+        c[k] for k in ("rox", "roy", "rtx", "rty", "r_own", "r_oth")
+    )
+    v_rel = (c["vx"], c["vy"])
+    v_damp = v_rel if damp_velocity is None else (c["vdx"], c["vdy"])
     (fx, fy), (xx, xy), fn, terms = contact_law(
         ov,
         (cnx, cny),
         v_rel,
-        (xi0x, xi0y),
+        (c["xi0x"], c["xi0y"]),
         m_eff,
         ok,
         params.normal_stiffness,
@@ -453,19 +461,19 @@ def _pair_kernel(p: Particles, world, pairs: Array, xi: Array, params: Params, d
     # body's frame through delta (along n) and through s (along e_dir), so the owner gets
     # (w_d e) n - (w_s e) e_dir, applied at its vertex, and the other body the opposite
     r_sum = r_own + r_oth
-    w, w_s, w_d = corner_weight(interior_c > 0.5, s_end_c, ov, r_sum)
+    w, w_s, w_d = corner_weight(c["interior"] > 0.5, c["s_end"], ov, r_sum)
     w = jnp.where(ok, w, 0.0)
     e = 0.5 * (
         params.normal_stiffness * ov * ov + params.tangential_stiffness * (xx * xx + xy * xy)
     )
     e = jnp.where(ok, e, 0.0)
-    gx = w_d * e * cnx - w_s * e * ex_c
-    gy = w_d * e * cny - w_s * e * ey_c
+    gx = w_d * e * cnx - w_s * e * c["ex"]
+    gy = w_d * e * cny - w_s * e * c["ey"]
     fx, fy, fn = w * fx + gx, w * fy + gy, w * fn
     terms = {k: w * v for k, v in terms.items()}
     # the along-edge part acts at the vertex, (r_own - delta / 2) n from the contact point
     lever = r_own - 0.5 * ov
-    tx_, ty_ = -w_s * e * ex_c, -w_s * e * ey_c
+    tx_, ty_ = -w_s * e * c["ex"], -w_s * e * c["ey"]
     couple = lever * (cnx * ty_ - cny * tx_)
     force = jnp.stack([fx, fy], axis=-1)
     f = jnp.zeros((n_p, 2), dtype).at[own].add(force).at[oth].add(-force)
@@ -571,17 +579,21 @@ def wall_forces(
     if mu_w.ndim == 1 and mu_w.shape[0] != n_w:  # static shapes: checked at trace time
         raise ValueError(f"wall_friction has {mu_w.shape[0]} values for {n_w} walls")
     # the law's inputs per entry, computed once (see _pair_kernel)
-    inputs = (ov, cnx, cny, xcx, xcy, rx, ry, p.mass[pi], flat_xi[0, at], flat_xi[1, at])
-    inputs = _compacted(ok, inputs + v_rel + (() if damp_velocity is None else v_damp))
-    ov, cnx, cny, xcx, xcy, rx, ry, mass, xi0x, xi0y = inputs[:10]
-    v_rel = inputs[10:12]
-    v_damp = v_rel if damp_velocity is None else inputs[12:14]
+    damped = {} if damp_velocity is None else {"vdx": v_damp[0], "vdy": v_damp[1]}
+    c = _compacted(
+        ok,
+        ov=ov, cnx=cnx, cny=cny, xcx=xcx, xcy=xcy, rx=rx, ry=ry, mass=p.mass[pi],
+        xi0x=flat_xi[0, at], xi0y=flat_xi[1, at], vx=v_rel[0], vy=v_rel[1], **damped,
+    )  # fmt: skip
+    ov, cnx, cny, xcx, xcy, rx, ry = (c[k] for k in ("ov", "cnx", "cny", "xcx", "xcy", "rx", "ry"))
+    v_rel = (c["vx"], c["vy"])
+    v_damp = v_rel if damp_velocity is None else (c["vdx"], c["vdy"])
     (fx, fy), (xx, xy), fn, terms = contact_law(
         ov,
         (cnx, cny),
         v_rel,
-        (xi0x, xi0y),
-        mass,
+        (c["xi0x"], c["xi0y"]),
+        c["mass"],
         ok,
         params.normal_stiffness,
         params.tangential_stiffness,
