@@ -8,7 +8,10 @@ only (:func:`jaxgran.scenes.interface.mohr_envelope_fits`):
 
 Prints one JSON object: circles, R^2 of both fits on all circles and on the peaks only, and
 per run the UCS, the tensile strength and which confinements peaked (``post_peak_behaviour``
-other than hardening).
+other than hardening). ``--circle S1 S3`` (Pa, compression positive; repeatable) adds a
+circle measured elsewhere, e.g. the tension (``0 -T``) and unconfined (``UCS 0``) tests of
+an earlier run of the same specimen when the runs pooled skipped them
+(``--set with_tension=false --set with_uniaxial=false``); such circles count as peaks.
 """
 
 from __future__ import annotations
@@ -26,10 +29,17 @@ def _real_peak(r: dict) -> bool:
     return bool(r["peaked"])
 
 
-def pool(folders: list[str]) -> dict:
+def pool(folders: list[str], circles: list[tuple[float, float]] = ()) -> dict:
     from jaxgran.scenes.interface import mohr_envelope_fits
 
     s1, s3, s1p, s3p, runs = [], [], [], [], []
+    for a, c in circles:
+        if not (a > c):
+            raise ValueError(f"a circle needs sigma1 > sigma3, got {a} and {c} Pa")
+        s1.append(float(a))
+        s3.append(float(c))
+        s1p.append(float(a))
+        s3p.append(float(c))
     for folder in folders:
         d = json.loads((Path(folder) / "summary.json").read_text())
         a, c = d["peak_sigma1_Pa"], d["peak_sigma3_Pa"]
@@ -63,8 +73,19 @@ def pool(folders: list[str]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folders", nargs="+", help="output folders of interface-compression runs")
+    ap.add_argument(
+        "--circle",
+        nargs=2,
+        type=float,
+        action="append",
+        default=[],
+        metavar=("SIGMA1", "SIGMA3"),
+        help="a peak circle measured elsewhere (Pa, compression positive); repeatable",
+    )
     args = ap.parse_args()
-    json.dump(pool(args.folders), sys.stdout, indent=1, default=float)
+    out = pool(args.folders, [tuple(c) for c in args.circle])
+    out["extra_circles"] = args.circle
+    json.dump(out, sys.stdout, indent=1, default=float)
     print()
 
 

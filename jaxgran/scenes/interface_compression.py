@@ -26,7 +26,8 @@ drop), or, judged on the slope of q over the last ``plateau_strain`` of the run,
 plateau or softening; all but hardening count as real peaks in the peaks-only envelope.
 ``max_strain`` is 10 % since 2026-12-06 (3 % before: too short for the confined disc
 specimens to show what follows their peak; ``benchmarks/INTERFACE_ENVELOPE_RESULTS.md``).
-The stress-strain record of every confinement is in ``curves.h5``.
+The stress-strain record of every confinement is in ``curves.h5`` (:func:`read_curves`
+reads it back).
 
 With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
 of the same specimen (with the same platen friction) add their Mohr circles, and the peak
@@ -382,8 +383,13 @@ def write_curves(path: Path, records: list, per: list[dict]) -> Path:
     """The shearing record of every confinement in one HDF5 file, a group per confinement
     (``sigma3_<MPa>``, in the order run) with ``time`` (s), ``axial_strain`` (-),
     ``sigma_axial``, ``sigma_lateral`` and ``deviator`` (Pa, compression positive) and the
-    confinement's measures (``per_confinement`` of summary.json) as attributes."""
+    confinement's measures (``per_confinement`` of summary.json) as attributes: numbers and
+    strings as they are, None, lists and dicts as JSON (listed in the group's ``_json``
+    attribute; :func:`read_curves` decodes them). Long records are stored compressed, as in
+    run.h5."""
     import h5py
+
+    from .. import io
 
     with h5py.File(path, "w", track_order=True) as f:
         for (s3, t, strain, s_ax, s_lat), m in zip(records, per, strict=True):
@@ -393,13 +399,29 @@ def write_curves(path: Path, records: list, per: list[dict]) -> Path:
                 ("axial_strain", strain, "1"),
                 ("sigma_axial", s_ax, "Pa"),
                 ("sigma_lateral", s_lat, "Pa"),
-                ("deviator", s_ax - s_lat, "Pa"),
+                ("deviator", np.asarray(s_ax, float) - np.asarray(s_lat, float), "Pa"),
             ):
-                g.create_dataset(name, data=np.asarray(val, float)).attrs["units"] = unit
-            for k, v in m.items():
-                if isinstance(v, (bool, int, float, str)):
-                    g.attrs[k] = v
+                io._put(g, name, np.asarray(val, float), units=unit)
+            io._set_attrs(g, m)
     return path
+
+
+def read_curves(path: str | Path) -> dict[str, dict]:
+    """A ``curves.h5`` of :func:`write_curves` back: per group (``sigma3_<MPa>``, in the order
+    run) the arrays ``time`` (s), ``axial_strain`` (-), ``sigma_axial``, ``sigma_lateral``,
+    ``deviator`` (Pa) and ``measures`` (the confinement's ``per_confinement`` entry of
+    summary.json, JSON-stored values decoded)."""
+    import h5py
+
+    from .. import io
+
+    out: dict[str, dict] = {}
+    with h5py.File(path, "r") as f:
+        for name, g in f.items():
+            rec = {k: g[k][()] for k in g}
+            rec["measures"] = io._get_attrs(g)
+            out[name] = rec
+    return out
 
 
 def _names(cls) -> set[str]:
