@@ -8,10 +8,11 @@ only (:func:`jaxgran.scenes.interface.mohr_envelope_fits`):
 
 Prints one JSON object: circles, R^2 of both fits on all circles and on the peaks only, and
 per run the UCS, the tensile strength and which confinements peaked (``post_peak_behaviour``
-other than hardening). ``--circle S1 S3`` (Pa, compression positive; repeatable) adds a
-circle measured elsewhere, e.g. the tension (``0 -T``) and unconfined (``UCS 0``) tests of
+other than hardening). ``--circle S1,S3`` (Pa, compression positive; repeatable) adds a
+circle measured elsewhere, e.g. the tension (``0,-T``) and unconfined (``UCS,0``) tests of
 an earlier run of the same specimen when the runs pooled skipped them
-(``--set with_tension=false --set with_uniaxial=false``); such circles count as peaks.
+(``--set with_tension=false --set with_uniaxial=false``); such circles count as peaks
+(write ``--circle=S1,S3`` where S1 is negative).
 """
 
 from __future__ import annotations
@@ -27,6 +28,14 @@ def _real_peak(r: dict) -> bool:
     if "post_peak_behaviour" in r:
         return r["post_peak_behaviour"] != "hardening"
     return bool(r["peaked"])
+
+
+def _circle(text: str) -> tuple[float, float]:
+    """``"S1,S3"`` (Pa) -> (S1, S3); one argument, so that a negative S3 is not an option."""
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected SIGMA1,SIGMA3 in Pa, got {text!r}")
+    return float(parts[0]), float(parts[1])
 
 
 def pool(folders: list[str], circles: list[tuple[float, float]] = ()) -> dict:
@@ -75,15 +84,14 @@ def main() -> None:
     ap.add_argument("folders", nargs="+", help="output folders of interface-compression runs")
     ap.add_argument(
         "--circle",
-        nargs=2,
-        type=float,
+        type=_circle,
         action="append",
         default=[],
-        metavar=("SIGMA1", "SIGMA3"),
+        metavar="SIGMA1,SIGMA3",
         help="a peak circle measured elsewhere (Pa, compression positive); repeatable",
     )
     args = ap.parse_args()
-    out = pool(args.folders, [tuple(c) for c in args.circle])
+    out = pool(args.folders, args.circle)
     out["extra_circles"] = args.circle
     json.dump(out, sys.stdout, indent=1, default=float)
     print()
