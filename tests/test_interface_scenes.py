@@ -143,21 +143,22 @@ def test_post_peak_behaviour_tells_brittle_plateau_softening_and_hardening_apart
         assert behaviour(q) == expected
     # the stored record reads back
     per = [
-        {"sigma3_target_Pa": 2e7, "post_peak_behaviour": "plateau", "peaked": False},
         {"sigma3_target_Pa": 4e7, "strain_at_peak": None, "notes": ["a", "b"]},
+        {"sigma3_target_Pa": 2e7, "post_peak_behaviour": "plateau", "peaked": False},
     ]
-    rec = [(s3, strain, strain, plateau + s3, np.full(strain.size, s3)) for s3 in (2e7, 4e7)]
+    rec = [(s3, strain, strain, plateau + s3, np.full(strain.size, s3)) for s3 in (4e7, 2e7)]
     ic.write_curves(tmp_path / "curves.h5", rec, per)
     with h5py.File(tmp_path / "curves.h5", "r") as f:
-        assert list(f) == ["sigma3_20MPa", "sigma3_40MPa"]  # in the order run
+        assert list(f) == ["sigma3_40MPa", "sigma3_20MPa"]  # in the order run
         g = f["sigma3_20MPa"]
         assert np.allclose(g["deviator"][()], plateau) and g["deviator"].attrs["units"] == "Pa"
         assert g.attrs["post_peak_behaviour"] == "plateau" and not g.attrs["peaked"]
     back = ic.read_curves(tmp_path / "curves.h5")
     np.testing.assert_array_equal(back["sigma3_40MPa"]["axial_strain"], strain)
     np.testing.assert_allclose(back["sigma3_40MPa"]["deviator"], plateau, rtol=1e-12)
-    assert back["sigma3_20MPa"]["measures"] == per[0]  # None and lists survive, as JSON
-    assert back["sigma3_40MPa"]["measures"] == per[1]
+    assert list(back) == ["sigma3_40MPa", "sigma3_20MPa"]
+    assert back["sigma3_40MPa"]["measures"] == per[0]  # None and lists survive, as JSON
+    assert back["sigma3_20MPa"]["measures"] == per[1]
 
 
 def test_particles_thrown_towards_the_grid_edge_are_taken_out():
