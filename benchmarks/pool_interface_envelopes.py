@@ -42,13 +42,12 @@ def pool(folders: list[str], circles: list[tuple[float, float]] = ()) -> dict:
     from jaxgran.scenes.interface import mohr_envelope_fits
 
     s1, s3, s1p, s3p, runs = [], [], [], [], []
-    for a, c in circles:
+    for a, c in circles:  # measured elsewhere: peaks
         if not (a > c):
             raise ValueError(f"a circle needs sigma1 > sigma3, got {a} and {c} Pa")
-        s1.append(float(a))
-        s3.append(float(c))
-        s1p.append(float(a))
-        s3p.append(float(c))
+    s1p += [float(a) for a, _ in circles]
+    s3p += [float(c) for _, c in circles]
+    s1, s3 = list(s1p), list(s3p)
     for folder in folders:
         d = json.loads((Path(folder) / "summary.json").read_text())
         a, c = d["peak_sigma1_Pa"], d["peak_sigma3_Pa"]

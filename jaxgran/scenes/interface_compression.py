@@ -418,7 +418,7 @@ def read_curves(path: str | Path) -> dict[str, dict]:
     out: dict[str, dict] = {}
     with h5py.File(path, "r") as f:
         for name, g in f.items():
-            rec = {k: g[k][()] for k in g}
+            rec = io._read_group(g, {}, name)
             rec["measures"] = io._get_attrs(g)
             out[name] = rec
     return out
