@@ -414,3 +414,38 @@ def test_confined_compression_runs_end_to_end_with_the_servo_at_sigma3(tmp_path)
     assert conf["sigma1_peak_Pa"] == pytest.approx(axial.max(), rel=1e-12)
     assert summary["envelope_peaks_only_n_circles"] == 0
     assert all(Path(p).stat().st_size > 0 for p in summary["figures"])
+    # the lateral walls shear under their own speed cap and were never held back by it
+    with h5py.File(tmp_path / "run.h5", "r") as f:
+        cap = f["final/walls/max_speed"][:]
+    assert cap[[1, 2]] == pytest.approx(cfg.servo_max_speed * cfg.strain_rate * cfg.height)
+    assert conf["servo_at_cap_fraction"] == 0.0
+    assert conf["sigma3_over_target_median"] == pytest.approx(1.0, abs=1e-4)
+    assert conf["sigma3_over_target_p95"] == pytest.approx(1.0, abs=5e-3)
+
+
+def test_lateral_control_counts_the_records_with_a_wall_at_its_speed_cap():
+    """A lateral wall that moves at its cap for half the shearing records, then stands:
+    half the records at the cap; the lateral stress's median and 95th percentile over its
+    target come from the records after the isotropic stage only."""
+    from types import SimpleNamespace
+
+    from jaxgran.scenes import interface_compression as ic
+
+    n, start, dt, cap = 40, 10, 1e-4, 0.2
+    t = np.arange(n) * dt
+    x = np.zeros((n, 4, 2))
+    x[:, 2, 0] = 0.03  # the right wall stands
+    moving = np.arange(n) - start
+    # the left wall moves out at the cap for the first 15 shearing intervals, then at 0.3 x
+    x[:, 1, 0] = -cap * dt * np.clip(moving, 0, 15) - 0.3 * cap * dt * np.clip(moving - 15, 0, None)
+    walls = SimpleNamespace(target_stress=np.full(4, 2e6), max_speed=np.full(4, cap))
+    out = {
+        "state": SimpleNamespace(walls=walls),
+        "start": start,
+        "series": {"time": t, "wall_point": x},
+    }
+    s_lat = np.linspace(2e6, 4e6, n - start)
+    m = ic.lateral_control(out, s_lat)
+    assert m["servo_at_cap_fraction"] == pytest.approx(15 / (n - start - 1))
+    assert m["sigma3_over_target_median"] == pytest.approx(1.5)
+    assert m["sigma3_over_target_p95"] == pytest.approx(1.95)

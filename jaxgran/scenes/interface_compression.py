@@ -61,7 +61,8 @@ SCENE = "interface-compression"
 @dataclasses.dataclass(frozen=True)
 class Config(si.Common):
     LIMITS: ClassVar[dict] = si.Common.LIMITS | {
-        "servo_response": Range(0.0, note="0: 3 wave transits for discs, 10 for Voronoi cells")
+        "servo_response": Range(0.0, note="0: 3 wave transits for discs, 10 for Voronoi cells"),
+        "shear_servo_response": Range(0.0, low_open=True, note="wave transits"),
     }
 
     width: float = 0.025  # m
@@ -76,9 +77,19 @@ class Config(si.Common):
     # cells (their face contacts are stiffer: at 3 the platens chatter at full speed and the
     # isotropic stage stalls 16 % under 5 MPa)
     servo_response: float = 0.0
-    # integral time of the servo walls in units of that time constant (4: critically
+    # the lateral servo's time constant while the specimen is sheared, in wave transits: its
+    # contacts are then all closed and a slow loop trails the bursts of dilation (Voronoi
+    # cells at 2 MPa: 1.40 x sigma3 at 10 transits, 1.02 at 3)
+    shear_servo_response: float = 3.0
+    # integral time of the lateral servo in units of its shearing time constant (4: critically
     # damped); inf = proportional servo alone, which trails the dilation of the specimen
     servo_integral: float = 4.0
+    # speed cap of the lateral servo walls while the specimen is sheared, in units of
+    # strain_rate x height (each platen moves at 0.5 of that): a cap below the specimen's
+    # rate of dilation lets the lateral stress run above sigma3 (2: the earlier cap, at which
+    # the Voronoi specimen at 2 MPa held 1.3-1.6 x sigma3 with its walls at the cap for over
+    # half the run). The isotropic stage keeps a cap of 2.
+    servo_max_speed: float = 10.0
     side_friction: float = 0.0  # side walls (the membrane: frictionless)
     post_peak_strain: float = 0.005  # stop once q stays below drop_fraction x peak this long
     # the drop stops a run only once q has passed drop_min_q x sigma3: below that no
@@ -107,12 +118,24 @@ QUICK = {
 
 
 def _servo_tau(mat: si.Material, cfg: Config) -> float:
-    """Time constant (s) of the servo loop: ``servo_response`` wave transits across the block
-    (its modulus taken as half the element modulus)."""
-    e = 0.5 * mat.modulus  # order of the block's modulus (Pa)
-    rho = mat.density * cfg.solid_fraction
+    """Time constant (s) of the servo loop in the isotropic stage: ``servo_response`` wave
+    transits across the block."""
     transits = cfg.servo_response or (3.0 if cfg.particles == "discs" else 10.0)
-    return transits * max(cfg.width, cfg.height) / math.sqrt(e / rho)
+    return _transit_time(mat, cfg) * transits
+
+
+def _shear_servo_tau(mat: si.Material, cfg: Config) -> float:
+    """Time constant (s) of the lateral servo loop while the specimen is sheared:
+    ``shear_servo_response`` wave transits."""
+    return _transit_time(mat, cfg) * cfg.shear_servo_response
+
+
+def _transit_time(mat: si.Material, cfg: Config) -> float:
+    """Time (s) a compression wave takes across the block's larger side (its modulus taken
+    as half the element modulus, its density the solid's x solid_fraction)."""
+    e = 0.5 * mat.modulus
+    rho = mat.density * cfg.solid_fraction
+    return max(cfg.width, cfg.height) / math.sqrt(e / rho)
 
 
 def _walls(spec: si.Specimen, mat: si.Material, cfg: Config, sigma3: float) -> list[dict]:
@@ -238,9 +261,13 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
     w = state.walls
     mode = jnp.asarray([WALL_VELOCITY, WALL_SERVO, WALL_SERVO, WALL_VELOCITY], jnp.int32)
     vel = jnp.asarray([[0.0, v], [0.0, 0.0], [0.0, 0.0], [0.0, -v]], w.vel.dtype)
-    # the lateral walls hold sigma3 while the specimen dilates: proportional-integral
-    ti = cfg.servo_integral * _servo_tau(setup.material, cfg)
+    # the lateral walls hold sigma3 while the specimen dilates: proportional-integral, with
+    # the shearing stage's own time constant (the gain scales as its inverse)
+    tau = _shear_servo_tau(setup.material, cfg)
+    ti = cfg.servo_integral * tau
     servo_time = jnp.asarray([math.inf, ti, ti, math.inf], w.servo_time.dtype)
+    faster = np.ones(4)
+    faster[[bd.LEFT, bd.RIGHT]] = _servo_tau(setup.material, cfg) / tau
     setup.state = replace(
         state,
         walls=replace(
@@ -249,6 +276,10 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
             vel=vel,
             servo_time=servo_time,
             servo_integral=jnp.zeros_like(w.servo_integral),
+            servo_gain=w.servo_gain * jnp.asarray(faster, w.servo_gain.dtype),
+            max_speed=jnp.full_like(
+                w.max_speed, cfg.servo_max_speed * cfg.strain_rate * cfg.height
+            ),
         ),
     )
     h0 = float(w.point[bd.TOP, 1] - w.point[bd.BOTTOM, 1])
@@ -313,8 +344,35 @@ def measure_confined(
             strain, q, bool(out.get("peaked", False)), plateau_strain, plateau_band
         ),
     }
+    res.update(lateral_control(out, s_lat))
     res.update(itf.element_summary(out["state"].bonds))
     return res
+
+
+def lateral_control(out: dict, s_lat: np.ndarray) -> dict:
+    """How well the lateral servo walls held sigma3 while the specimen was sheared: the
+    lateral stress over its target (median and 95th percentile of the shearing records) and
+    the fraction of records in which a lateral wall moved at its speed cap (``max_speed``):
+    there the specimen dilated faster than the wall may follow, and the lateral stress runs
+    above sigma3 (raise ``servo_max_speed``)."""
+    walls = out["state"].walls
+    target = float(walls.target_stress[bd.LEFT])
+    k0 = out["start"]
+    t = np.asarray(out["series"]["time"], float)[k0:]
+    x = np.asarray(out["series"]["wall_point"], float)[k0:, (bd.LEFT, bd.RIGHT), 0]
+    cap = np.asarray(walls.max_speed, float)[[bd.LEFT, bd.RIGHT]]
+    if len(t) > 1:
+        # each record's mean wall speed: a wall at its cap throughout moves cap x the span
+        speed = np.abs(np.diff(x, axis=0)) / np.diff(t)[:, None]
+        at_cap = float(np.mean(np.any(speed >= 0.99 * cap, axis=1)))
+    else:
+        at_cap = 0.0
+    ratio = np.asarray(s_lat, float) / target
+    return {
+        "sigma3_over_target_median": float(np.median(ratio)),
+        "sigma3_over_target_p95": float(np.percentile(ratio, 95)),
+        "servo_at_cap_fraction": at_cap,
+    }
 
 
 def envelope(cfg: Config, *, progress: bool = False) -> dict:
@@ -328,6 +386,15 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
         out = run_confined(cfg, float(s3), spec, progress=progress)
         runs.append(out)
         m = measure_confined(out, mat.thickness, cfg.plateau_strain, cfg.plateau_band)
+        if m["servo_at_cap_fraction"] > 0.05:
+            warnings.warn(
+                f"at sigma3 = {s3 / 1e6:g} MPa a lateral wall moved at its speed cap in "
+                f"{100 * m['servo_at_cap_fraction']:.0f} % of the shearing records: the "
+                "specimen dilated faster than the servo may follow, and the lateral stress "
+                f"was {m['sigma3_over_target_median']:.2f} x sigma3 (median; 95th percentile "
+                f"{m['sigma3_over_target_p95']:.2f}); raise servo_max_speed",
+                stacklevel=2,
+            )
         per.append({"sigma3_target_Pa": float(s3), **m})
     s1 = [p["sigma1_peak_Pa"] for p in per]
     s3 = [p["sigma3_at_peak_Pa"] for p in per]
