@@ -414,6 +414,15 @@ def test_confined_compression_runs_end_to_end_with_the_servo_at_sigma3(tmp_path)
     assert conf["sigma1_peak_Pa"] == pytest.approx(axial.max(), rel=1e-12)
     assert summary["envelope_peaks_only_n_circles"] == 0
     assert all(Path(p).stat().st_size > 0 for p in summary["figures"])
+    # elastic under a constant lateral stress: the lateral strain is -nu_block x the axial
+    # strain (it shortens and widens). A hexagonal packing of discs bonded with k_s / k_n =
+    # 1 / stiffness_ratio = 0.4 has nu = (1 - 0.4) / (3 + 0.4) = 0.18; this disordered one
+    # gives 0.15. Volumetric strain = 1 - (1 - e_a)(1 - e_l).
+    back = ic.read_curves(tmp_path / "curves.h5")["sigma3_20MPa"]
+    lat, vol = back["lateral_strain"], back["volumetric_strain"]
+    np.testing.assert_allclose(vol, 1.0 - (1.0 - strain) * (1.0 - lat), rtol=1e-12)
+    nu_block = -np.polyfit(strain[late], lat[late], 1)[0]
+    assert 0.08 < nu_block < 0.3
     # the lateral walls shear under their own speed cap and were never held back by it
     with h5py.File(tmp_path / "run.h5", "r") as f:
         cap = f["final/walls/max_speed"][:]

@@ -26,8 +26,10 @@ drop), or, judged on the slope of q over the last ``plateau_strain`` of the run,
 plateau or softening; all but hardening count as real peaks in the peaks-only envelope.
 ``max_strain`` is 10 % since 2026-12-06 (3 % before: too short for the confined disc
 specimens to show what follows their peak; ``benchmarks/INTERFACE_ENVELOPE_RESULTS.md``).
-The stress-strain record of every confinement is in ``curves.h5`` (:func:`read_curves`
-reads it back).
+The stress-strain record of every confinement, with the lateral and volumetric strain of
+the box (figure ``volumetric_strain.png``), is in ``curves.h5`` (:func:`read_curves` reads
+it back). Each confinement also reports how well the lateral servo held sigma3
+(:func:`lateral_control`).
 
 With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
 of the same specimen (with the same platen friction) add their Mohr circles, and the peak
@@ -283,6 +285,7 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
         ),
     )
     h0 = float(w.point[bd.TOP, 1] - w.point[bd.BOTTOM, 1])
+    w0 = float(w.point[bd.RIGHT, 0] - w.point[bd.LEFT, 0])
 
     damaged0 = si.n_damaged(state)
     track = new_drop_track()
@@ -312,6 +315,7 @@ def run_confined(cfg: Config, sigma3: float, spec=None, *, progress: bool = Fals
         "setup": setup,
         "start": len(iso.series["time"]),
         "height0": h0,
+        "width0": w0,
         "steps": iso.steps + shear.steps,
         "wall_time_s": iso.wall_time_s + shear.wall_time_s,
         "result": shear,
@@ -449,7 +453,10 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
 def write_curves(path: Path, records: list, per: list[dict]) -> Path:
     """The shearing record of every confinement in one HDF5 file, a group per confinement
     (``sigma3_<MPa>``, in the order run) with ``time`` (s), ``axial_strain`` (-),
-    ``sigma_axial``, ``sigma_lateral`` and ``deviator`` (Pa, compression positive) and the
+    ``sigma_axial``, ``sigma_lateral`` and ``deviator`` (Pa, compression positive), where a
+    record carries it (a sixth entry) ``lateral_strain`` and ``volumetric_strain`` (-,
+    compaction positive: ``1 - width / width0`` between the lateral walls, and ``1 - area /
+    area0`` of the box; negative is dilation), and the
     confinement's measures (``per_confinement`` of summary.json) as attributes: numbers and
     strings as they are, None, lists and dicts as JSON (listed in the group's ``_json``
     attribute; :func:`read_curves` decodes them). Long records are stored compressed, as in
@@ -459,15 +466,21 @@ def write_curves(path: Path, records: list, per: list[dict]) -> Path:
     from .. import io
 
     with h5py.File(path, "w", track_order=True) as f:
-        for (s3, t, strain, s_ax, s_lat), m in zip(records, per, strict=True):
+        for rec, m in zip(records, per, strict=True):
+            s3, t, strain, s_ax, s_lat = rec[:5]
             g = f.create_group(f"sigma3_{s3 / 1e6:g}MPa")
-            for name, val, unit in (
+            cols = [
                 ("time", t, "s"),
                 ("axial_strain", strain, "1"),
                 ("sigma_axial", s_ax, "Pa"),
                 ("sigma_lateral", s_lat, "Pa"),
                 ("deviator", np.asarray(s_ax, float) - np.asarray(s_lat, float), "Pa"),
-            ):
+            ]
+            if len(rec) > 5:
+                lat = np.asarray(rec[5], float)
+                vol = 1.0 - (1.0 - np.asarray(strain, float)) * (1.0 - lat)
+                cols += [("lateral_strain", lat, "1"), ("volumetric_strain", vol, "1")]
+            for name, val, unit in cols:
                 io._put(g, name, np.asarray(val, float), units=unit)
             io._set_attrs(g, m)
     return path
@@ -476,7 +489,8 @@ def write_curves(path: Path, records: list, per: list[dict]) -> Path:
 def read_curves(path: str | Path) -> dict[str, dict]:
     """A ``curves.h5`` of :func:`write_curves` back: per group (``sigma3_<MPa>``, in the order
     run) the arrays ``time`` (s), ``axial_strain`` (-), ``sigma_axial``, ``sigma_lateral``,
-    ``deviator`` (Pa) and ``measures`` (the confinement's ``per_confinement`` entry of
+    ``deviator`` (Pa), ``lateral_strain`` and ``volumetric_strain`` (-) where written, and
+    ``measures`` (the confinement's ``per_confinement`` entry of
     summary.json, JSON-stored values decoded)."""
     import h5py
 
@@ -521,7 +535,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     summary = write_outputs(out_dir, SCENE, cfg, r0, last["setup"].params, summary, vtk=vtk)
     from .. import plot_interface as pi
 
-    curves = {}
+    curves, dilation = {}, {}
     T = cfg.thickness
     records = []
     for s3, out in zip(cfg.confinements, runs, strict=True):
@@ -529,7 +543,13 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         k0 = out["start"]
         strain = 1.0 - h[k0:] / out["height0"]
         curves[f"sigma3 = {s3 / 1e6:g} MPa"] = (100 * strain, (s_ax - s_lat)[k0:] / 1e6)
-        records.append((float(s3), out["series"]["time"][k0:], strain, s_ax[k0:], s_lat[k0:]))
+        pts = np.asarray(out["series"]["wall_point"], float)[k0:]
+        lateral = 1.0 - (pts[:, bd.RIGHT, 0] - pts[:, bd.LEFT, 0]) / out["width0"]
+        volumetric = 1.0 - (1.0 - strain) * (1.0 - lateral)
+        dilation[f"sigma3 = {s3 / 1e6:g} MPa"] = (100 * strain, 100 * volumetric)
+        records.append(
+            (float(s3), out["series"]["time"][k0:], strain, s_ax[k0:], s_lat[k0:], lateral)
+        )
     write_curves(Path(out_dir) / "curves.h5", records, env["per_confinement"])
     peaked = env["peaked"]
     some = "linear_r2" in env["fits_peaks"] and not all(peaked)
@@ -537,6 +557,12 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     figs = [
         pi.plot_curve(
             curves, "axial strain (%)", "deviator s1 - s3 (MPa)", Path(out_dir) / "deviator.png"
+        ),
+        pi.plot_curve(
+            dilation,
+            "axial strain (%)",
+            "volumetric strain (%, compaction positive)",
+            Path(out_dir) / "volumetric_strain.png",
         ),
         pi.plot_mohr(
             env["sigma1"],
