@@ -427,7 +427,7 @@ def test_confined_compression_runs_end_to_end_with_the_servo_at_sigma3(tmp_path)
     with h5py.File(tmp_path / "run.h5", "r") as f:
         cap = f["final/walls/max_speed"][:]
     assert cap[[1, 2]] == pytest.approx(cfg.servo_max_speed * cfg.strain_rate * cfg.height)
-    assert conf["servo_at_cap_fraction"] == 0.0
+    assert conf["servo_at_cap_fraction"] == conf["servo_at_cap_fraction_to_peak"] == 0.0
     assert conf["sigma3_over_target_median"] == pytest.approx(1.0, abs=1e-4)
     assert conf["sigma3_over_target_p95"] == pytest.approx(1.0, abs=5e-3)
 
@@ -454,7 +454,8 @@ def test_lateral_control_counts_the_records_with_a_wall_at_its_speed_cap():
         "series": {"time": t, "wall_point": x},
     }
     s_lat = np.linspace(2e6, 4e6, n - start)
-    m = ic.lateral_control(out, s_lat)
+    m = ic.lateral_control(out, s_lat, peak=20)
     assert m["servo_at_cap_fraction"] == pytest.approx(15 / (n - start - 1))
+    assert m["servo_at_cap_fraction_to_peak"] == pytest.approx(15 / 20)
     assert m["sigma3_over_target_median"] == pytest.approx(1.5)
     assert m["sigma3_over_target_p95"] == pytest.approx(1.95)

@@ -348,35 +348,39 @@ def measure_confined(
             strain, q, bool(out.get("peaked", False)), plateau_strain, plateau_band
         ),
     }
-    res.update(lateral_control(out, s_lat))
+    res.update(lateral_control(out, s_lat, k))
     res.update(itf.element_summary(out["state"].bonds))
     return res
 
 
-def lateral_control(out: dict, s_lat: np.ndarray) -> dict:
+def lateral_control(out: dict, s_lat: np.ndarray, peak: int | None = None) -> dict:
     """How well the lateral servo walls held sigma3 while the specimen was sheared: the
     lateral stress over its target (median and 95th percentile of the shearing records) and
     the fraction of records in which a lateral wall moved at its speed cap (``max_speed``):
     there the specimen dilated faster than the wall may follow, and the lateral stress runs
-    above sigma3 (raise ``servo_max_speed``)."""
+    above sigma3 (raise ``servo_max_speed``). With ``peak`` (the index of the largest q in
+    the shearing records) the fraction is also given for the records up to the peak, the
+    ones that set the strength."""
     walls = out["state"].walls
     target = float(walls.target_stress[bd.LEFT])
     k0 = out["start"]
     t = np.asarray(out["series"]["time"], float)[k0:]
     x = np.asarray(out["series"]["wall_point"], float)[k0:, (bd.LEFT, bd.RIGHT), 0]
     cap = np.asarray(walls.max_speed, float)[[bd.LEFT, bd.RIGHT]]
-    if len(t) > 1:
-        # each record's mean wall speed: a wall at its cap throughout moves cap x the span
-        speed = np.abs(np.diff(x, axis=0)) / np.diff(t)[:, None]
-        at_cap = float(np.mean(np.any(speed >= 0.99 * cap, axis=1)))
-    else:
-        at_cap = 0.0
+    # each record's mean wall speed over the interval before it: a wall at its cap
+    # throughout moves cap x the interval
+    speed = np.abs(np.diff(x, axis=0)) / np.diff(t)[:, None] if len(t) > 1 else np.zeros((0, 2))
+    at_cap = np.any(speed >= 0.99 * cap, axis=1)
     ratio = np.asarray(s_lat, float) / target
-    return {
+    res = {
         "sigma3_over_target_median": float(np.median(ratio)),
         "sigma3_over_target_p95": float(np.percentile(ratio, 95)),
-        "servo_at_cap_fraction": at_cap,
+        "servo_at_cap_fraction": float(at_cap.mean()) if len(at_cap) else 0.0,
     }
+    if peak is not None:
+        before = at_cap[: int(peak)]
+        res["servo_at_cap_fraction_to_peak"] = float(before.mean()) if len(before) else 0.0
+    return res
 
 
 def envelope(cfg: Config, *, progress: bool = False) -> dict:
@@ -390,10 +394,11 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
         out = run_confined(cfg, float(s3), spec, progress=progress)
         runs.append(out)
         m = measure_confined(out, mat.thickness, cfg.plateau_strain, cfg.plateau_band)
-        if m["servo_at_cap_fraction"] > 0.05:
+        if m["servo_at_cap_fraction"] > 0.05 or m["servo_at_cap_fraction_to_peak"] > 0.01:
             warnings.warn(
                 f"at sigma3 = {s3 / 1e6:g} MPa a lateral wall moved at its speed cap in "
-                f"{100 * m['servo_at_cap_fraction']:.0f} % of the shearing records: the "
+                f"{100 * m['servo_at_cap_fraction']:.0f} % of the shearing records "
+                f"({100 * m['servo_at_cap_fraction_to_peak']:.0f} % up to the peak): the "
                 "specimen dilated faster than the servo may follow, and the lateral stress "
                 f"was {m['sigma3_over_target_median']:.2f} x sigma3 (median; 95th percentile "
                 f"{m['sigma3_over_target_p95']:.2f}); raise servo_max_speed",
