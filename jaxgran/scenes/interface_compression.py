@@ -75,9 +75,9 @@ class Config(si.Common):
     drop_fraction: float = 0.7  # stop below this x the peak deviator (after the peak)
     iso_tolerance: float = 0.02  # isotropic stage ends when every wall is this close
     iso_max_time: float = 6.0e-3  # s
-    # servo time constant in wave transits across the block; 0: 3 for discs, 10 for Voronoi
-    # cells (their face contacts are stiffer: at 3 the platens chatter at full speed and the
-    # isotropic stage stalls 16 % under 5 MPa)
+    # servo time constant of the isotropic stage in wave transits across the block; 0: 3 for
+    # discs, 10 for Voronoi cells (their face contacts are stiffer: at 3 the platens chatter
+    # at full speed and the stage stalls 16 % under 5 MPa)
     servo_response: float = 0.0
     # the lateral servo's time constant while the specimen is sheared, in wave transits: its
     # contacts are then all closed and a slow loop trails the bursts of dilation (Voronoi
