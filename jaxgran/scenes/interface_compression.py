@@ -12,7 +12,10 @@ walls servo to sigma3 (isotropic stage; a warning if it has not converged within
 lateral servo walls hold sigma3. In the shearing the lateral servo is proportional-integral
 (integral time ``servo_integral`` loop time constants): a proportional servo alone trails a
 specimen that dilates while it is sheared, by ``dilation rate / gain`` (on Voronoi cells it held
-4.7 MPa for a 2 MPa target at the peak). The shearing ends at ``max_strain``, or once the
+4.7 MPa for a 2 MPa target at the peak). Its time constant (``shear_servo_response`` wave
+transits) and speed cap (``servo_max_speed`` x strain_rate x height) are the shearing's own: a
+cap below the specimen's rate of dilation holds the walls back and the lateral stress runs
+above sigma3 (:func:`lateral_control` measures it). The shearing ends at ``max_strain``, or once the
 deviator q has stayed below ``drop_fraction`` of its peak for ``post_peak_strain`` of axial
 strain after elements failed and q passed ``drop_min_q x sigma3`` (a stick-slip dip that
 recovers does not end it, nor does a collapse of the fabric at a small q). Stresses are
