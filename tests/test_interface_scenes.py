@@ -433,9 +433,10 @@ def test_confined_compression_runs_end_to_end_with_the_servo_at_sigma3(tmp_path)
 
 
 def test_lateral_control_counts_the_records_with_a_wall_at_its_speed_cap():
-    """A lateral wall that moves at its cap for half the shearing records, then stands:
-    half the records at the cap; the lateral stress's median and 95th percentile over its
-    target come from the records after the isotropic stage only."""
+    """A lateral wall that moves out at its cap for the first 15 of the 29 shearing
+    intervals, then at 0.3 x the cap (the isotropic records before them do not count):
+    15 / 29 of the records at the cap, 15 / 20 up to a peak at record 20; the lateral
+    stress's median and 95th percentile over its target."""
     from types import SimpleNamespace
 
     from jaxgran.scenes import interface_compression as ic
@@ -445,8 +446,13 @@ def test_lateral_control_counts_the_records_with_a_wall_at_its_speed_cap():
     x = np.zeros((n, 4, 2))
     x[:, 2, 0] = 0.03  # the right wall stands
     moving = np.arange(n) - start
-    # the left wall moves out at the cap for the first 15 shearing intervals, then at 0.3 x
-    x[:, 1, 0] = -cap * dt * np.clip(moving, 0, 15) - 0.3 * cap * dt * np.clip(moving - 15, 0, None)
+    # the left wall closes in at the cap in the isotropic stage, moves out at the cap for
+    # the first 15 shearing intervals, then at 0.3 x the cap
+    x[:, 1, 0] = (
+        cap * dt * np.clip(-moving, 0, None)
+        - cap * dt * np.clip(moving, 0, 15)
+        - 0.3 * cap * dt * np.clip(moving - 15, 0, None)
+    )
     walls = SimpleNamespace(target_stress=np.full(4, 2e6), max_speed=np.full(4, cap))
     out = {
         "state": SimpleNamespace(walls=walls),
