@@ -465,3 +465,19 @@ def test_lateral_control_counts_the_records_with_a_wall_at_its_speed_cap():
     assert m["servo_at_cap_fraction_to_peak"] == pytest.approx(15 / 20)
     assert m["sigma3_over_target_median"] == pytest.approx(1.5)
     assert m["sigma3_over_target_p95"] == pytest.approx(1.95)
+
+
+def test_isotropic_and_shearing_stages_have_their_own_wall_speed_caps():
+    """The four servo walls of the isotropic stage move under their own cap,
+    ``iso_max_speed`` x strain_rate x height (the shearing stage's lateral walls take
+    ``servo_max_speed``, checked end to end above), each at the target sigma3; a cap of 0
+    is refused."""
+    from jaxgran.scenes import interface_compression as ic
+
+    cfg = dataclasses.replace(ic.Config(), **ic.QUICK, iso_max_speed=3.0, servo_max_speed=7.0)
+    walls = ic.build(cfg, 5.0e6).state.walls
+    unit = cfg.strain_rate * cfg.height
+    np.testing.assert_allclose(np.asarray(walls.max_speed), 3.0 * unit, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(walls.target_stress), 5.0e6, rtol=1e-12)
+    with pytest.raises(ValueError, match="iso_max_speed"):
+        ic.Config(iso_max_speed=0.0)

@@ -203,6 +203,7 @@ SETTINGS: dict[str, Rule] = {
     "servo_response": POSITIVE,
     "servo_integral": Range(0.0, low_open=True, note="inf: proportional servo alone"),
     "servo_max_speed": POSITIVE,
+    "iso_max_speed": POSITIVE,
     "shear_damping": Range(0.0, note="0: none (paper 002: contact dashpots only)"),
     "p_values": POSITIVE,
     "confinements": POSITIVE,
