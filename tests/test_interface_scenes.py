@@ -378,18 +378,32 @@ def test_interface_step_is_stable_with_the_element_and_contact_dashpots():
 
 
 def test_confined_compression_runs_end_to_end_with_the_servo_at_sigma3(tmp_path):
-    """The whole `interface-compression` scene on the quick specimen at one confinement,
+    """The whole `interface-compression` scene on the quick specimen at two confinements,
     sheared to 1 % (still elastic): the lateral walls hold sigma3, q rises on a straight
-    line, and summary.json, curves.h5 and the figures agree with each other."""
+    line, and summary.json, curves.h5, the run files of both confinements and the figures
+    agree with each other."""
     import h5py
 
     from jaxgran.scenes import interface_compression as ic
 
-    quick = {**ic.QUICK, "confinements": (20.0e6,), "max_strain": 0.01}
+    quick = {**ic.QUICK, "confinements": (5.0e6, 20.0e6), "max_strain": 0.01}
     cfg = dataclasses.replace(ic.Config(), **quick)
     summary = ic.run(cfg, tmp_path, progress=False)
     assert json.loads((tmp_path / "summary.json").read_text())["steps"] == summary["steps"]
-    (conf,) = summary["per_confinement"]
+    low, conf = summary["per_confinement"]
+    # run.h5 is the last confinement's record, run_sigma3_5MPa.h5 the first one's: their
+    # walls' targets and their shearing records are those of curves.h5
+    for name, path, s3 in (
+        ("sigma3_5MPa", tmp_path / "run_sigma3_5MPa.h5", 5.0e6),
+        ("sigma3_20MPa", tmp_path / "run.h5", 20.0e6),
+    ):
+        rec = read_run(path)
+        np.testing.assert_allclose(rec["final"]["walls"]["target_stress"][[1, 2]], s3)
+        t = ic.read_curves(tmp_path / "curves.h5")[name]["time"]
+        np.testing.assert_array_equal(rec["series"]["time"][-len(t) :], t)
+        assert (tmp_path / f"cracks_{name}.png").stat().st_size > 0
+    assert not (tmp_path / "run_sigma3_20MPa.h5").exists()
+    assert low["sigma3_target_Pa"] == 5.0e6
     with h5py.File(tmp_path / "curves.h5", "r") as f:
         g = f["sigma3_20MPa"]
         strain, q = g["axial_strain"][:], g["deviator"][:]

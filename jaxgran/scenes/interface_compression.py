@@ -32,7 +32,10 @@ specimens to show what follows their peak; ``benchmarks/INTERFACE_ENVELOPE_RESUL
 The stress-strain record of every confinement, with the lateral and volumetric strain of
 the box (figure ``volumetric_strain.png``), is in ``curves.h5`` (:func:`read_curves` reads
 it back). Each confinement also reports how well the lateral servo held sigma3
-(:func:`lateral_control`).
+(:func:`lateral_control`). ``run.h5`` is the whole record (series, frames, final state with
+its bonds) of the last confinement, ``run_sigma3_<MPa>.h5`` that of each other one (read
+either with :func:`jaxgran.io.read_run`), and ``cracks_sigma3_<MPa>.png`` draws the failed
+elements of each at the end of its shearing.
 
 With ``with_tension`` and ``with_uniaxial`` (default) the direct tension and unconfined tests
 of the same specimen (with the same platen friction) add their Mohr circles, and the peak
@@ -574,6 +577,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
     last = runs[-1]
     r0 = last["result"].realisation(0)
     summary = write_outputs(out_dir, SCENE, cfg, r0, last["setup"].params, summary, vtk=vtk)
+    from .. import io
     from .. import plot_interface as pi
 
     curves, dilation = {}, {}
@@ -608,10 +612,22 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
             f"bond = {cfg.bond}, {cfg.particles}; envelopes fitted to {which} circles",
             peaked=peaked,
         ),
-        pi.plot_cracks(
-            last["state"],
-            si.element_table(last["state"]),
-            Path(out_dir) / "cracks_highest_confinement.png",
-        ),
     ]
+    for s3, out in zip(cfg.confinements, runs, strict=True):
+        name = f"sigma3_{s3 / 1e6:g}MPa"
+        figs.append(
+            pi.plot_cracks(
+                out["state"],
+                si.element_table(out["state"]),
+                Path(out_dir) / f"cracks_{name}.png",
+                stages=[(f"sigma3 = {s3 / 1e6:g} MPa, end of shearing", np.inf)],
+            )
+        )
+        if out is not last:  # run.h5 holds the last one
+            io.write_run(
+                Path(out_dir) / f"run_{name}.h5",
+                out["result"].realisation(0),
+                out["setup"].params,
+                metadata={"scene": SCENE, "config": dataclasses.asdict(cfg), "sigma3_Pa": s3},
+            )
     return si.finish(out_dir, summary, figs)
