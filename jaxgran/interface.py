@@ -462,6 +462,23 @@ def particle_moment(p: Particles, b: InterfaceBonds) -> Array:
     return 0.5 * (m + jnp.swapaxes(m, -1, -2))
 
 
+def friction_crossover(cohesion: float, tensile_strength: float, residual_friction: float) -> float:
+    """Compression (Pa, positive) above which the parabola of paper 003 Eq. 3,
+    ``c sqrt(1 + s / sigma_b)``, lies below the friction line ``mu_b s`` of a failed element:
+
+        s* = (c^2 / sigma_b + sqrt(c^4 / sigma_b^2 + 4 mu_b^2 c^2)) / (2 mu_b^2).
+
+    A bonded element sheared to failure above s* carries more after failing than before, so
+    there the bond adds nothing to the strength of the frictional contact. (The parallel
+    bond's line ``c + s tan(phi)`` stays above ``mu_b s`` for every s when ``tan(phi) >=
+    mu_b``.) ``inf`` for ``mu_b = 0``."""
+    if residual_friction <= 0:
+        return math.inf
+    a = cohesion**2 / tensile_strength
+    mu2 = residual_friction**2
+    return (a + math.sqrt(a * a + 4.0 * mu2 * cohesion**2)) / (2.0 * mu2)
+
+
 def element_summary(b: InterfaceBonds) -> dict[str, int | float]:
     """Host-side counts: bonds, elements, failed elements per mode, fully broken bonds and
     the mean damage (failed fraction of the elements of real bonds)."""

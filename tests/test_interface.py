@@ -209,6 +209,32 @@ def test_shear_failure_exactly_on_the_envelope(bond, sigma):
         np.testing.assert_allclose(np.abs(tau), MU * max(-sigma, 0.0), atol=1e-6)
 
 
+@pytest.mark.parametrize("factor", [0.5, 1.5])
+def test_above_the_friction_crossover_a_shear_failure_costs_the_interface_nothing(factor):
+    """The parabola meets the friction line of a failed element at s* (friction_crossover).
+    Sheared to failure at a compression below s*, an element drops to mu_b |sigma|; above s*
+    it keeps the stress it failed at and, sheared on, carries up to mu_b |sigma|, more than
+    its bonded strength. The parallel bond (tan(phi) > mu_b) always drops."""
+    s_star = itf.friction_crossover(C, SB, MU)
+    assert C * math.sqrt(1 + s_star / SB) == pytest.approx(MU * s_star, rel=1e-12)
+    sigma = -factor * s_star
+    cap = MU * factor * s_star
+    for bond in ("interface", "parallel"):
+        parts, b = _pair(bond)
+        tau_c = _tau_c(sigma, bond)
+        _, _, new = _eval(_move(parts, sigma / KN, (1 + EPS) * tau_c / KS), b)
+        assert np.all(np.asarray(new.mode) == itf.MODE_SHEAR)
+        at_failure = np.abs(np.asarray(new.tau)[0])
+        np.testing.assert_allclose(at_failure, min((1 + EPS) * tau_c, cap), rtol=1e-9)
+        # sheared on by twice the cap's elastic displacement: friction at mu_b |sigma|
+        _, _, new = _eval(_move(parts, sigma / KN, (tau_c + 2 * cap) / KS), new)
+        np.testing.assert_allclose(np.abs(np.asarray(new.tau)[0]), cap, rtol=1e-9)
+        gains = bond == "interface" and factor > 1
+        assert (cap > tau_c) == gains
+        assert np.all(at_failure >= tau_c) == gains
+    assert itf.friction_crossover(C, SB, 0.0) == math.inf
+
+
 def test_envelopes_meet_at_zero_stress_and_differ_under_compression():
     s = jnp.array([SB, 0.0, -10e6, -40e6])
     par = itf.shear_strength(s, C, SB, math.tan(PHI), itf.ENVELOPE_PARABOLIC)
