@@ -495,3 +495,14 @@ def test_isotropic_and_shearing_stages_have_their_own_wall_speed_caps():
     np.testing.assert_allclose(np.asarray(walls.target_stress), 5.0e6, rtol=1e-12)
     with pytest.raises(ValueError, match="iso_max_speed"):
         ic.Config(iso_max_speed=0.0)
+
+
+def test_confinements_given_twice_are_refused_before_anything_runs():
+    """curves.h5 and the run files are named by the confinement: the same one twice (or two
+    that print alike) is a clear error up front, not an HDF5 error after the runs."""
+    from jaxgran.scenes import interface_compression as ic
+
+    for twice in ((5.0e6, 5.0e6), (2.0e6, 2.0000001e6)):
+        cfg = dataclasses.replace(ic.Config(), **{**ic.QUICK, "confinements": twice})
+        with pytest.raises(ValueError, match="same group twice"):
+            ic.envelope(cfg)

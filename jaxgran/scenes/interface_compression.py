@@ -60,7 +60,7 @@ from ..integrate import servo_gain_for
 from ..state import WALL_SERVO, WALL_VELOCITY, box_walls, replace
 from . import bonded as bd
 from . import interface as si
-from .base import write_outputs
+from .base import environment, write_outputs
 from .limits import Range
 
 SCENE = "interface-compression"
@@ -425,6 +425,12 @@ def lateral_control(out: dict, s_lat: np.ndarray, peak: int | None = None) -> di
 def envelope(cfg: Config, *, progress: bool = False) -> dict:
     """All confinements (and tension / unconfined if asked) on one specimen; peak circles and
     both envelope fits."""
+    names = [group_name(s3) for s3 in cfg.confinements]
+    if len(set(names)) != len(names):
+        raise ValueError(
+            f"confinements {list(cfg.confinements)} name the same group twice ({names}); "
+            "give each confinement once (a repeat is another seed: --set seed=...)"
+        )
     mat = si.material_from(cfg)
     region = ("rect", (0.0, 0.0), (cfg.width, cfg.height))
     spec = si.make_specimen(cfg, region, mat)
@@ -494,6 +500,11 @@ def envelope(cfg: Config, *, progress: bool = False) -> dict:
     }
 
 
+def group_name(sigma3: float) -> str:
+    """Name of a confinement's group in curves.h5 and of its files: ``sigma3_<MPa>MPa``."""
+    return f"sigma3_{sigma3 / 1e6:g}MPa"
+
+
 def write_curves(path: Path, records: list, per: list[dict]) -> Path:
     """The shearing record of every confinement in one HDF5 file, a group per confinement
     (``sigma3_<MPa>``, in the order run) with ``time`` (s), ``axial_strain`` (-),
@@ -512,7 +523,7 @@ def write_curves(path: Path, records: list, per: list[dict]) -> Path:
     with h5py.File(path, "w", track_order=True) as f:
         for rec, m in zip(records, per, strict=True):
             s3, t, strain, s_ax, s_lat = rec[:5]
-            g = f.create_group(f"sigma3_{s3 / 1e6:g}MPa")
+            g = f.create_group(group_name(s3))
             cols = [
                 ("time", t, "s"),
                 ("axial_strain", strain, "1"),
@@ -614,7 +625,7 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
         ),
     ]
     for s3, out in zip(cfg.confinements, runs, strict=True):
-        name = f"sigma3_{s3 / 1e6:g}MPa"
+        name = group_name(s3)
         figs.append(
             pi.plot_cracks(
                 out["state"],
@@ -628,6 +639,11 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
                 Path(out_dir) / f"run_{name}.h5",
                 out["result"].realisation(0),
                 out["setup"].params,
-                metadata={"scene": SCENE, "config": dataclasses.asdict(cfg), "sigma3_Pa": s3},
+                metadata={
+                    "scene": SCENE,
+                    "config": dataclasses.asdict(cfg),
+                    "sigma3_Pa": s3,
+                    **environment(),
+                },
             )
     return si.finish(out_dir, summary, figs)
