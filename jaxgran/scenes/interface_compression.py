@@ -80,7 +80,7 @@ class Config(si.Common):
     max_strain: float = 0.10
     drop_fraction: float = 0.7  # stop below this x the peak deviator (after the peak)
     iso_tolerance: float = 0.02  # isotropic stage ends when every wall is this close
-    # s; the stage ends as soon as every wall is within iso_tolerance. A packing that
+    # (s) the stage ends as soon as every wall is within iso_tolerance. A packing that
     # collapses under the isotropic load (76 discs at 40 MPa: 53-111 of 129 bonds broken)
     # needs its walls to close in at their cap for longer: 6.8-7.3 ms on the four seeds that
     # did not make it in the earlier 6 ms
