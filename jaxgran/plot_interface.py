@@ -130,6 +130,59 @@ def plot_mohr(sigma_1, sigma_3, fits: dict, path: Path, title: str = "", peaked=
     return _save(fig, path)
 
 
+def plot_element_failures(failures: dict, material: dict, path: Path, title: str = "") -> Path:
+    """Each failed element on the (compression, |tau|) plane at its last frame before failure
+    (:func:`jaxgran.scenes.interface.element_failures`; ``failures`` maps a label, e.g. the
+    confinement, to one such dict), shear failures as dots and tension failures as crosses,
+    with the bonded element's shear strength (``material``: ``cohesion``,
+    ``tensile_strength``, ``tan_friction_angle`` in Pa / -, ``envelope`` code) and the
+    friction line ``mu_b |sigma|`` of a failed one (``residual_friction``); stresses in MPa,
+    compression positive."""
+    from .interface import ENVELOPE_PARABOLIC, MODE_SHEAR, friction_crossover, shear_strength
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    top = 0.0
+    for k, (label, f) in enumerate(failures.items()):
+        comp, tau = -np.asarray(f["sigma"]) / 1e6, np.abs(np.asarray(f["tau"])) / 1e6
+        shear = np.asarray(f["mode"]) == MODE_SHEAR
+        colour = f"C{k}"
+        ax.plot(comp[shear], tau[shear], ".", ms=3, color=colour, alpha=0.6, label=label)
+        ax.plot(comp[~shear], tau[~shear], "x", ms=3, color=colour, alpha=0.6)
+        if comp.size:
+            top = max(top, float(np.percentile(comp, 99)))
+    c, sb = material["cohesion"], material["tensile_strength"]
+    mu = material["residual_friction"]
+    top = max(top, 2.0 * c / 1e6)
+    s = np.linspace(-sb, top * 1e6, 400)  # compression positive
+    strength = np.asarray(
+        shear_strength(-s, c, sb, material["tan_friction_angle"], material["envelope"])
+    )
+    ax.plot(s / 1e6, strength / 1e6, "k-", lw=1.2, label="bonded strength tau_c")
+    ax.plot(s / 1e6, mu * np.maximum(s, 0.0) / 1e6, "k--", lw=1.0, label=f"friction {mu:g} |sigma|")
+    if material["envelope"] == ENVELOPE_PARABOLIC:
+        s_star = friction_crossover(c, sb, mu) / 1e6
+        if s_star <= top:
+            ax.axvline(s_star, color="0.5", lw=0.8, ls=":")
+            ax.annotate(
+                f"crossover {s_star:.0f} MPa",
+                (s_star, 0),
+                fontsize=7,
+                rotation=90,
+                va="bottom",
+                ha="right",
+            )
+    ax.set_xlim(-1.5 * sb / 1e6, top)
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("element normal stress (MPa, compression positive)")
+    ax.set_ylabel("element shear stress |tau| (MPa)")
+    ax.set_title(
+        title or "failed elements at the last frame before failure (x: tension)", fontsize=9
+    )
+    ax.legend(fontsize=7, markerscale=3)
+    ax.grid(True, alpha=0.3)
+    return _save(fig, path)
+
+
 def plot_axis_stress(y, measured, closed_form_y, closed_form, path: Path, title: str = "") -> Path:
     """Horizontal stress along the loading axis (MPa, tension positive) from the measurement
     circles against the closed-form disc solution; ``y`` in m."""

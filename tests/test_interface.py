@@ -235,6 +235,44 @@ def test_above_the_friction_crossover_a_shear_failure_costs_the_interface_nothin
     assert itf.friction_crossover(C, SB, 0.0) == math.inf
 
 
+def test_element_failures_take_the_stresses_of_the_last_frame_before_the_failure():
+    """Two frames (at rest; pressed by sigma and sheared to half its strength), then a shear
+    past the envelope that fails all four elements at t = 2 s: element_failures finds each
+    with the stresses of the second frame (k_n u_n, k_s u_s), its strength and friction
+    there; the summary's compression and strength lost follow."""
+    from jaxgran.scenes import interface as si
+
+    parts, b = _pair()
+    sigma = -20.0e6
+    tau_c = _tau_c(sigma, "interface")
+    p1 = _move(parts, sigma / KN, 0.5 * tau_c / KS)
+    _, _, b = _forces(p1, b, NO_WALLS, 1.0)
+    _, _, b = _forces(_move(parts, sigma / KN, 1.01 * tau_c / KS), b, NO_WALLS, 1.0)
+    assert np.all(np.asarray(b.mode) == itf.MODE_SHEAR)
+    frames = {
+        "time": np.array([0.0, 1.0]),
+        "pos": np.stack([np.asarray(parts.pos), np.asarray(p1.pos)]),
+        "angle": np.stack([np.asarray(parts.angle), np.asarray(p1.angle)]),
+    }
+    f = si.element_failures(frames, b)
+    assert f["sigma"].size == NE and np.all(f["time"] == 2.0) and np.all(f["bond"] == 0)
+    np.testing.assert_allclose(f["sigma"], sigma, rtol=1e-9)
+    np.testing.assert_allclose(np.abs(f["tau"]), 0.5 * tau_c, rtol=1e-9)
+    np.testing.assert_allclose(f["tau_c"], tau_c, rtol=1e-12)
+    np.testing.assert_allclose(f["friction"], MU * 20.0e6, rtol=1e-9)
+    m = si.failure_stress_summary(f, b)
+    assert m["n_shear_failures_recorded"] == NE and m["n_tension_failures_recorded"] == 0
+    assert m["shear_failure_compression_median_Pa"] == pytest.approx(20.0e6, rel=1e-9)
+    assert m["strength_lost_on_failing_median"] == pytest.approx(
+        1.0 - MU * 20.0e6 / tau_c, rel=1e-9
+    )
+    assert m["friction_crossover_Pa"] == pytest.approx(itf.friction_crossover(C, SB, MU))
+    assert m["shear_failures_above_crossover"] == 0.0
+    # a failure before the first frame (the isotropic stage) is not counted
+    frames["time"] = frames["time"] + 5.0
+    assert si.element_failures(frames, b)["sigma"].size == 0
+
+
 def test_envelopes_meet_at_zero_stress_and_differ_under_compression():
     s = jnp.array([SB, 0.0, -10e6, -40e6])
     par = itf.shear_strength(s, C, SB, math.tan(PHI), itf.ENVELOPE_PARABOLIC)

@@ -404,6 +404,13 @@ def test_confined_compression_runs_end_to_end_with_the_servo_at_sigma3(tmp_path)
         assert (tmp_path / f"cracks_{name}.png").stat().st_size > 0
     assert not (tmp_path / "run_sigma3_20MPa.h5").exists()
     assert low["sigma3_target_Pa"] == 5.0e6
+    # the elements that failed while sheared, found from the frames (none at 20 MPa)
+    assert low["n_shear_failures_recorded"] + low["n_tension_failures_recorded"] <= sum(
+        low[f"n_failed_{m}"] for m in ("shear", "tension")
+    )
+    assert conf["n_shear_failures_recorded"] == 0
+    assert conf["shear_failure_compression_median_Pa"] is None
+    assert (tmp_path / "element_failures.png").stat().st_size > 0
     with h5py.File(tmp_path / "curves.h5", "r") as f:
         g = f["sigma3_20MPa"]
         strain, q = g["axial_strain"][:], g["deviator"][:]

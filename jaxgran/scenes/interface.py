@@ -609,6 +609,131 @@ def element_table(state) -> dict[str, np.ndarray]:
     }
 
 
+def _host_bonds(bonds) -> dict[str, np.ndarray]:
+    """The real bonds of an :class:`jaxgran.interface.InterfaceBonds` or of the ``bonds``
+    group of :func:`jaxgran.io.read_run` as host arrays (wall bonds left out)."""
+    if isinstance(bonds, itf.InterfaceBonds):
+        raw = {f.name: getattr(bonds, f.name) for f in dataclasses.fields(bonds)}
+    else:
+        raw = dict(bonds)
+    raw.pop("wall_bonds", None)
+    b = {k: np.asarray(v) for k, v in raw.items()}
+    real = b["i"] < b["j"]
+    return {k: (v[real] if v.ndim and len(v) == len(real) else v) for k, v in b.items()}
+
+
+def bond_material(bonds) -> dict[str, float | int]:
+    """``cohesion``, ``tensile_strength`` (Pa), ``tan_friction_angle``, ``residual_friction``
+    (-) and the ``envelope`` code of the first real bond (the scenes give every bond one
+    material), from bonds as :func:`element_failures` takes them."""
+    b = _host_bonds(bonds)
+    keys = ("cohesion", "tensile_strength", "tan_friction_angle", "residual_friction")
+    out: dict[str, float | int] = {k: float(b[k][0]) for k in keys}
+    out["envelope"] = int(b["envelope"][0])
+    return out
+
+
+def _rot_rows(v: np.ndarray, a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def bonded_element_stresses(pos, angle, b: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``sigma = k_n u_n`` and ``tau = k_s u_s`` (Pa, tension positive) ``[B, E]`` of every
+    element as if bonded, for particle positions ``pos [P, 2]`` (m) and angles ``[P]``
+    (rad): the kinematics of :func:`jaxgran.interface.interface_kinematics` on the host."""
+    i, j = b["i"], b["j"]
+    a_i, a_j = angle[i], angle[j]
+    theta = (a_j - a_i) - b["theta0"]
+    normal = _rot_rows(b["normal_i"], a_i + 0.5 * theta)
+    tangent = np.stack([-normal[:, 1], normal[:, 0]], axis=-1)
+    d = (pos[j][:, None, :] + _rot_rows(b["elem_point_j"], a_j[:, None])) - (
+        pos[i][:, None, :] + _rot_rows(b["elem_point_i"], a_i[:, None])
+    )
+    u_n = np.einsum("bek,bk->be", d, normal)
+    u_s = np.einsum("bek,bk->be", d, tangent)
+    return b["normal_stiffness"][:, None] * u_n, b["shear_stiffness"][:, None] * u_s
+
+
+def element_failures(frames, bonds) -> dict[str, np.ndarray]:
+    """Where on its envelope each element failed: for every element of ``bonds`` (final
+    :class:`jaxgran.interface.InterfaceBonds`, or the ``final/bonds`` group of a run file)
+    that failed after the first of ``frames`` (stacked frames with ``time``, ``pos`` and
+    ``angle``: :func:`jaxgran.io.stack_frames`, or ``frames`` of a run file), its failure
+    ``time`` (s), ``mode`` (:data:`jaxgran.interface.MODE_NAMES`) and ``bond`` index, and at
+    the last frame recorded before the failure its normal and shear stress ``sigma`` and
+    ``tau`` (Pa, tension positive; :func:`bonded_element_stresses`), its shear strength
+    there ``tau_c`` and the friction it carries once failed, ``friction = mu_b max(-sigma,
+    0)`` (Pa). Frames are decimated, so the stresses are those of up to one frame interval
+    before the failure: inside the envelope, and the nearer it the denser the frames."""
+    b = _host_bonds(bonds)
+    t_frames = np.asarray(frames["time"], float) if len(frames) else np.zeros(0)
+    t_fail = b["elem_break_time"]
+    failed = np.isfinite(t_fail)
+    if t_frames.size:
+        failed &= t_fail > t_frames[0]
+    else:
+        failed[:] = False
+    bond, elem = np.nonzero(failed)
+    k_frame = np.searchsorted(t_frames, t_fail[failed], side="right") - 1
+    sigma = np.zeros(bond.size)
+    tau = np.zeros(bond.size)
+    for k in np.unique(k_frame):
+        sel = k_frame == k
+        s_k, t_k = bonded_element_stresses(
+            np.asarray(frames["pos"][k], float), np.asarray(frames["angle"][k], float), b
+        )
+        sigma[sel], tau[sel] = s_k[bond[sel], elem[sel]], t_k[bond[sel], elem[sel]]
+    tau_c = np.asarray(
+        itf.shear_strength(
+            sigma,
+            b["cohesion"][bond],
+            b["tensile_strength"][bond],
+            b["tan_friction_angle"][bond],
+            b["envelope"][bond],
+        )
+    )
+    return {
+        "time": t_fail[failed],
+        "mode": b["mode"][failed],
+        "bond": bond,
+        "sigma": sigma,
+        "tau": tau,
+        "tau_c": tau_c,
+        "friction": b["residual_friction"][bond] * np.maximum(-sigma, 0.0),
+    }
+
+
+def failure_stress_summary(fails: dict, bonds) -> dict[str, float | None]:
+    """Key figures of :func:`element_failures`: counts of the shear and tension failures it
+    found (those after the first frame); of the shear failures the
+    median and 90th percentile of the compression ``-sigma`` (Pa) and the median of the
+    strength an element lost on failing, ``(tau_c - friction) / tau_c`` (negative where it
+    gained: above the crossover of :func:`jaxgran.interface.friction_crossover`); for the
+    interface bond the crossover (Pa; of the first bond's material, which the scenes give
+    every bond) and the fraction of shear failures above it."""
+    shear = fails["mode"] == itf.MODE_SHEAR
+    comp = np.maximum(-fails["sigma"][shear], 0.0)
+    # (a frame before a shear failure may find the element past sigma_b, where tau_c = 0)
+    some = shear & (fails["tau_c"] > 0)
+    lost = (fails["tau_c"] - fails["friction"])[some] / fails["tau_c"][some]
+    out: dict[str, float | None] = {
+        "n_shear_failures_recorded": int(shear.sum()),
+        "n_tension_failures_recorded": int((fails["mode"] == itf.MODE_TENSION).sum()),
+        "shear_failure_compression_median_Pa": float(np.median(comp)) if comp.size else None,
+        "shear_failure_compression_p90_Pa": float(np.percentile(comp, 90)) if comp.size else None,
+        "strength_lost_on_failing_median": float(np.median(lost)) if lost.size else None,
+    }
+    m = bond_material(bonds)
+    if m["envelope"] == itf.ENVELOPE_PARABOLIC:
+        s_star = itf.friction_crossover(
+            m["cohesion"], m["tensile_strength"], m["residual_friction"]
+        )
+        out["friction_crossover_Pa"] = s_star
+        out["shear_failures_above_crossover"] = float((comp > s_star).mean()) if comp.size else None
+    return out
+
+
 def _lens_area(a: np.ndarray, b: float, d: np.ndarray) -> np.ndarray:
     """Area of the intersection of discs of radii ``a`` and ``b`` at distance ``d`` (m^2)."""
     a = np.asarray(a, float)

@@ -389,7 +389,18 @@ def measure_confined(
     }
     res.update(lateral_control(out, s_lat, k))
     res.update(itf.element_summary(out["state"].bonds))
+    res.update(si.failure_stress_summary(failures(out), out["state"].bonds))
     return res
+
+
+def failures(out: dict) -> dict[str, np.ndarray]:
+    """:func:`jaxgran.scenes.interface.element_failures` of the shearing stage of one
+    :func:`run_confined` result (its frames and final bonds)."""
+    from .. import io
+
+    state = out["state"]
+    frames = io.stack_frames(out["result"].realisation(0).frames, state.particles)
+    return si.element_failures(frames, state.bonds)
 
 
 def lateral_control(out: dict, s_lat: np.ndarray, peak: int | None = None) -> dict:
@@ -624,6 +635,18 @@ def run(cfg: Config, out_dir: Path, *, progress: bool = True, vtk: bool = False)
             peaked=peaked,
         ),
     ]
+    figs.append(
+        pi.plot_element_failures(
+            {
+                f"sigma3 = {s3 / 1e6:g} MPa": failures(out)
+                for s3, out in zip(cfg.confinements, runs, strict=True)
+            },
+            si.bond_material(runs[0]["state"].bonds),
+            Path(out_dir) / "element_failures.png",
+            f"bond = {cfg.bond}, {cfg.particles}: failed elements at the last frame before "
+            "failure (dots shear, crosses tension)",
+        )
+    )
     for s3, out in zip(cfg.confinements, runs, strict=True):
         name = group_name(s3)
         figs.append(
