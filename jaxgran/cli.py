@@ -62,7 +62,13 @@ def main(argv: list[str] | None = None) -> int:
 
     plot_p = sub.add_parser("plot", help="redraw the figures of a run.h5")
     plot_p.add_argument("path", type=Path)
-    plot_p.add_argument("--out", type=Path, default=None)
+    plot_p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for the figures (default: run.h5's folder; for any other file, a "
+        "folder named after it beside it)",
+    )
     plot_p.add_argument("--vtk", action="store_true", help="also write VTK files")
 
     cal = sub.add_parser(
@@ -211,7 +217,10 @@ def _plot(args) -> int:
     except (OSError, ValueError, KeyError) as exc:  # not a run file, or a truncated one
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    out = args.out or args.path.parent
+    # a run's other record files (e.g. run_sigma3_5MPa.h5 beside run.h5) draw into a folder
+    # of their own, not over the figures of run.h5
+    default = args.path.parent if args.path.name == "run.h5" else args.path.with_suffix("")
+    out = args.out or default
     for p in plot.plot_run(run, out):
         print(p)
     if args.vtk:

@@ -60,6 +60,14 @@ def test_deposit_writes_summary_h5_and_figures(deposit_run):
 def test_plot_command_redraws(deposit_run, tmp_path):
     assert main(["plot", str(deposit_run / "run.h5"), "--out", str(tmp_path)]) == 0
     assert (tmp_path / "packing.png").exists()
+    # another record file of a run (run_sigma3_5MPa.h5 beside run.h5) draws into a folder
+    # named after it, leaving the figures beside it alone
+    other = tmp_path / "run_sigma3_5MPa.h5"
+    other.write_bytes((deposit_run / "run.h5").read_bytes())
+    before = (tmp_path / "packing.png").stat().st_mtime_ns
+    assert main(["plot", str(other)]) == 0
+    assert (tmp_path / "run_sigma3_5MPa" / "packing.png").exists()
+    assert (tmp_path / "packing.png").stat().st_mtime_ns == before
 
 
 def test_bad_setting_is_refused(capsys, tmp_path):
