@@ -675,7 +675,7 @@ def element_failures(frames, bonds) -> dict[str, np.ndarray]:
     else:
         failed[:] = False
     bond, elem = np.nonzero(failed)
-    k_frame = np.searchsorted(t_frames, t_fail[failed], side="right") - 1
+    k_frame = np.searchsorted(t_frames, t_fail[failed], side="left") - 1  # strictly before
     sigma = np.zeros(bond.size)
     tau = np.zeros(bond.size)
     for k in np.unique(k_frame):
