@@ -235,6 +235,25 @@ def test_above_the_friction_crossover_a_shear_failure_costs_the_interface_nothin
     assert itf.friction_crossover(C, SB, 0.0) == math.inf
 
 
+def test_host_element_stresses_match_the_jitted_kinematics():
+    """bonded_element_stresses (numpy, for run files) is k_n u_n and k_s u_s of
+    interface_kinematics for any placement of the pair (moved, turned, both bodies)."""
+    from jaxgran.scenes import interface as si
+
+    parts, b = _pair()
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        dx, dy = rng.normal(0.0, 1e-5, 2)
+        moved = _move(_move(parts, dx, dy, rng.normal(0.0, 0.05)), *rng.normal(0, 1e-5, 2), k=0)
+        moved = replace(moved, angle=moved.angle.at[0].add(rng.normal(0.0, 0.05)))
+        k = itf.interface_kinematics(moved, b)
+        sig, tau = si.bonded_element_stresses(
+            np.asarray(moved.pos), np.asarray(moved.angle), si._host_bonds(b)
+        )
+        np.testing.assert_allclose(sig, KN * np.asarray(k["u_n"]), rtol=1e-12, atol=1e-6)
+        np.testing.assert_allclose(tau, KS * np.asarray(k["u_s"]), rtol=1e-12, atol=1e-6)
+
+
 def test_element_failures_take_the_stresses_of_the_last_frame_before_the_failure():
     """Two frames (at rest; pressed by sigma and sheared to half its strength), then a shear
     past the envelope that fails all four elements at t = 2 s: element_failures finds each
