@@ -395,12 +395,15 @@ def measure_confined(
 
 def failures(out: dict) -> dict[str, np.ndarray]:
     """:func:`jaxgran.scenes.interface.element_failures` of the shearing stage of one
-    :func:`run_confined` result (its frames and final bonds)."""
-    from .. import io
+    :func:`run_confined` result (its frames and final bonds); found once and kept in
+    ``out["failures"]`` (the summary and the figure both use them)."""
+    if "failures" not in out:
+        from .. import io
 
-    state = out["state"]
-    frames = io.stack_frames(out["result"].realisation(0).frames, state.particles)
-    return si.element_failures(frames, state.bonds)
+        state = out["state"]
+        frames = io.stack_frames(out["result"].realisation(0).frames, state.particles)
+        out["failures"] = si.element_failures(frames, state.bonds)
+    return out["failures"]
 
 
 def lateral_control(out: dict, s_lat: np.ndarray, peak: int | None = None) -> dict:
