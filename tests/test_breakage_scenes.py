@@ -156,6 +156,11 @@ def test_quick_cantor_oedometer_keeps_mass_bookkeeping_and_particles_inside(quic
     assert s["mass_fines_fraction"] + s["mass_eroded_fraction"] == pytest.approx(
         s["mass_lost_fraction"], rel=1e-9
     )
+    # the erosion splits into the caps clear of the neighbours and the corner rounding
+    assert s["mass_caps_fraction"] >= 0.0 and s["mass_rounding_fraction"] > 0.0
+    assert s["mass_caps_fraction"] + s["mass_rounding_fraction"] == pytest.approx(
+        s["mass_eroded_fraction"], rel=1e-9
+    )
     m0 = info["mean_initial_mass"]
     for ev in brk.events:
         # pieces dropped as fines count as fragments of the mean fines mass (metrics docstring)

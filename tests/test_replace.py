@@ -91,6 +91,9 @@ def test_straight_cut_rounds_only_the_new_corners():
     assert ev["fines_mass"] == 0.0
     total = ev["fragment_masses"].sum() + ev["fines_mass"] + ev["eroded_mass"]
     assert total == pytest.approx(m0, rel=1e-14)
+    # nothing in the way: the whole loss is the rounding of the new corners
+    assert ev["caps_mass"] == 0.0 and ev["caps_area"] == 0.0
+    assert ev["rounding_mass"] == ev["eroded_mass"]
     p = state.particles
     assert np.asarray(p.active).tolist() == [True, True]
     assert np.asarray(p.parent_uid).tolist() == [0, 0]
@@ -202,6 +205,13 @@ def test_density_compensation_keeps_the_mass_of_each_piece():
     assert abs(comp["mass_lost"]) < 1e-14 * comp["parent_mass"]
     assert comp["area_lost"] == pytest.approx(plain["area_lost"], rel=1e-12)
     assert plain["eroded_mass"] == pytest.approx(RHO * plain["area_lost"], rel=1e-9)
+    # the caps (here the uniform erosion by delta) cost area either way, mass only without
+    # compensation
+    assert (
+        comp["caps_area"] == pytest.approx(plain["caps_area"], rel=1e-12) and comp["caps_area"] > 0
+    )
+    assert comp["caps_mass"] == 0.0
+    assert plain["caps_mass"] == pytest.approx(RHO * plain["caps_area"], rel=1e-12)
     p = state.particles
     for s, m in zip(comp["fragment_slots"], comp["fragment_masses"], strict=True):
         core = np.asarray(p.verts[s, : int(p.n_verts[s])])
@@ -481,11 +491,20 @@ def test_local_erosion_removes_only_the_overlap_caps():
     own corner rounding takes (no overlap); uniform erosion shrinks the core all round."""
     overlap = 3e-5
     lines = [[[-1, -1], [1, 1]], [[-1, 0.001], [1, 0.001]]]
-    lost = {}
+    lost, caps, rounding = {}, {}, {}
     for mode in ("none", "local", "uniform"):
         state, _, _ = _row_of_three(overlap)
         _, ev = replace_particle(state, 1, _cut(state, 1, lines), clearance=0.0, erosion=mode)
         lost[mode] = ev["mass_lost"] / RHO  # m^2
+        caps[mode], rounding[mode] = ev["caps_area"], ev["rounding_mass"] / RHO
+        assert ev["caps_mass"] == pytest.approx(RHO * ev["caps_area"], rel=1e-12)
+        assert ev["caps_mass"] + ev["rounding_mass"] == pytest.approx(ev["eroded_mass"], rel=1e-14)
+    # the logged caps are what each mode loses beyond the cut's own corner rounding, and the
+    # rounding is the same in every mode: it depends on the planes, not on the neighbours
+    assert caps["none"] == 0.0
+    for mode in ("local", "uniform"):
+        assert caps[mode] == pytest.approx(lost[mode] - lost["none"], rel=1e-9)
+        assert rounding[mode] == pytest.approx(lost["none"], rel=1e-9)
     d = overlap
     assert lost["local"] - lost["none"] == pytest.approx(2 * d * (A + 2 * R), rel=0.01)
     # uniform erosion also opens a gap 2 delta along both cuts (chords A + 2R and
@@ -517,12 +536,13 @@ def test_local_erosion_at_a_contact_on_the_fracture_plane_costs_nothing_beyond_t
     more; the least-penetration line of the earlier rule takes a strip overlap x (A + 2R)
     off the whole top face."""
     overlap = 2e-4
-    lost, clips = {}, {}
+    lost, clips, caps = {}, {}, {}
     for mode in ("none", "local-axis", "local"):
         state, params, grid = _square_under_a_wedge(overlap)
         assert float(max_overlap(state)[0]) == pytest.approx(overlap, rel=1e-9)
         state, ev = replace_particle(state, 0, _cut(state, 0, [[[0, -1], [0, 1]]]), erosion=mode)
         lost[mode] = ev["mass_lost"] / RHO
+        caps[mode] = ev["caps_area"]
         state, err = prepare(state, params, grid)
         assert int(err) == 0
         frags = ev["fragment_slots"].tolist()
@@ -532,6 +552,9 @@ def test_local_erosion_at_a_contact_on_the_fracture_plane_costs_nothing_beyond_t
     assert lost["local-axis"] - lost["none"] == pytest.approx(strip, rel=1e-3)
     assert lost["local"] - lost["none"] < 1e-6 * strip
     assert clips["local"] == 0.0 and clips["local-axis"] == 0.0
+    # the logged caps: the strip for the earlier rule, nothing (to round-off) for the local one
+    assert caps["local-axis"] == pytest.approx(strip, rel=1e-3)
+    assert abs(caps["local"]) < 1e-6 * strip
 
 
 @pytest.mark.parametrize("seed", range(6))

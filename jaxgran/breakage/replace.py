@@ -64,6 +64,12 @@ Mass bookkeeping (per event, areal density ``rho`` of the parent, ``rho = m / A`
     piece has no neighbour to join. With ``conserve_mass`` each fragment keeps the mass of
     its uneroded piece (density raised by the eroded fraction) and ``eroded_mass`` is 0 up
     to round-off; ``area_lost`` (m^2) records the geometric loss in every mode.
+    ``eroded_mass = caps_mass + rounding_mass``: ``caps_mass`` is what the erosion clear of
+    the neighbours and walls took (the loss paper 000 Fig. 6 marks; ``caps_area`` in m^2:
+    the area the kept pieces would have kept with nothing in the way, eroded by ``r`` and
+    the clearance only, minus the fragments' area; 0 kg with ``conserve_mass``) and
+    ``rounding_mass`` the rest, the rounding of the new corners that any fragment of
+    sphero-radius ``r`` pays (with the outline's ``3e-3 r^2`` excess).
 
 Kinematics: a fragment takes the parent's rigid-body velocity field at its centroid,
 ``v_f = v + omega x (c_f - x)``, and ``omega_f = omega``. Linear and angular momentum are
@@ -571,6 +577,9 @@ class _Fragment:
     inertia: float
     area: float  # m^2, of the spheropolygon
     radius: float  # m, sphero-radius
+    # m^2, what the neighbours' erosion took from it: the area its piece would keep with no
+    # neighbour in the way (:meth:`_PieceCut.unobstructed`) minus ``area``
+    cap_area: float = 0.0
 
 
 class _PieceCut(NamedTuple):
@@ -654,6 +663,20 @@ class _PieceCut(NamedTuple):
         """Area (m^2) of the fragment the piece ``q`` becomes, 0 if it vanishes."""
         core, r = self.core(self.clip(q))
         return 0.0 if core is None else _spheropolygon_area(core, r)
+
+    def unobstructed(self) -> _PieceCut:
+        """The same cut with no neighbour or wall in the way: no clipping, eroded by ``r``
+        and the clearance only. What a piece keeps under it is lost to the new corners'
+        rounding alone; the rest of a fragment's loss is the erosion clear of the
+        neighbours (the loss paper 000 Fig. 6 marks)."""
+        return self._replace(
+            normals=None,
+            offsets=None,
+            bodies=(),
+            axis_normals=None,
+            axis_offsets=None,
+            delta=self.clearance,
+        )
 
 
 def _area(q: np.ndarray) -> float:
@@ -842,13 +865,14 @@ def replace_particles(
         clipped = [c for c, _ in clip_counts]
         n_piece_clips = sum(n for _, n in clip_counts)
         cores = [cut.core(q) for q in clipped]
+        free = cut.unobstructed()
         frags: list[_Fragment] = []
         fines_area = 0.0
         # share of the parent's mass per outline piece (conserve_mass), before clipping
         piece_area = np.array([abs(geo.polygon_area(q)) if len(q) >= 3 else 0.0 for q in pieces])
         share = m_parent * piece_area / max(piece_area.sum(), np.finfo(float).tiny)
         fines_share = 0.0
-        for piece, (core, r_f), m_share in zip(clipped, cores, share, strict=True):
+        for whole, piece, (core, r_f), m_share in zip(pieces, clipped, cores, share, strict=True):
             area = None if core is None else _spheropolygon_area(core, r_f)
             if core is None or area < min_area:
                 fines_area += abs(geo.polygon_area(piece)) if len(piece) >= 3 else 0.0
@@ -856,7 +880,8 @@ def replace_particles(
                 continue
             rho_f = m_share / area if conserve_mass else rho
             m, c, inertia = geo.spheropolygon_mass_properties(core, r_f, rho_f)
-            frags.append(_Fragment(core - c, c, m, inertia, area, r_f))
+            cap = free.kept_area(whole) - area if n_clips or mode == "uniform" else 0.0
+            frags.append(_Fragment(core - c, c, m, inertia, area, r_f, cap))
         fines_mass = fines_share if conserve_mass else rho * fines_area
         plans.append(
             (
@@ -948,6 +973,8 @@ def replace_particles(
         masses = np.array([f.mass for f in frags])
         areas = np.array([f.area for f in frags])
         lost = m_parent - float(masses.sum())
+        caps = float(sum(f.cap_area for f in frags))
+        caps_mass = 0.0 if conserve_mass else plan[2] * caps
         planes = np.zeros((0, 2, 2)) if rep.planes is None else np.asarray(rep.planes, float)
         event = {
             "kind": "breakage",
@@ -966,6 +993,9 @@ def replace_particles(
             "mass_lost": lost,
             "fines_mass": fines_mass,
             "eroded_mass": lost - fines_mass,
+            "caps_area": caps,
+            "caps_mass": caps_mass,
+            "rounding_mass": lost - fines_mass - caps_mass,
             "n_fines": len(rep.pieces) - n_merged - len(frags),
             "n_merged": n_merged,
             "erosion": delta,
@@ -1113,9 +1143,10 @@ def replace_particle(
     Returns:
         ``(state, event)``. The event holds ``time`` (s), ``parent_uid``,
         ``fragment_uids``, ``fragment_slots``, ``fragment_masses`` (kg), ``parent_mass``,
-        ``mass_lost`` (= parent - fragments, kg), ``fines_mass``, ``eroded_mass``,
-        ``n_fines``, ``erosion`` (m), ``planes`` and, with ``mean_initial_mass``,
-        ``breakage_type``; ``capacity_growth`` when a capacity grew.
+        ``mass_lost`` (= parent - fragments, kg), ``fines_mass``, ``eroded_mass``
+        (= ``caps_mass + rounding_mass``, see the module's bookkeeping), ``n_fines``,
+        ``erosion`` (m), ``planes`` and, with ``mean_initial_mass``, ``breakage_type``;
+        ``capacity_growth`` when a capacity grew.
     """
     n_p = state.particles.pos.shape[0]
     ov = None

@@ -667,6 +667,10 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "mass_lost_fraction": lost / mass0,
         "mass_fines_fraction": sum(float(e["fines_mass"]) for e in ev) / mass0,
         "mass_eroded_fraction": sum(float(e["eroded_mass"]) for e in ev) / mass0,
+        # the eroded mass split: the erosion clear of the neighbours (paper 000 Fig. 6's
+        # loss) and the rounding of the new corners (jaxgran.breakage.replace)
+        "mass_caps_fraction": sum(float(e["caps_mass"]) for e in ev) / mass0,
+        "mass_rounding_fraction": sum(float(e["rounding_mass"]) for e in ev) / mass0,
         "small_pieces": cfg.small_pieces,
         "conserve_mass": cfg.conserve_mass,
         "fragment_radius_floor": cfg.fragment_radius_floor,
