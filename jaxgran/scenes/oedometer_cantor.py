@@ -669,8 +669,9 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "mass_eroded_fraction": sum(float(e["eroded_mass"]) for e in ev) / mass0,
         # the eroded mass split: the erosion clear of the neighbours (paper 000 Fig. 6's
         # loss) and the rounding of the new corners (jaxgran.breakage.replace)
-        "mass_caps_fraction": sum(float(e["caps_mass"]) for e in ev) / mass0,
-        "mass_rounding_fraction": sum(float(e["rounding_mass"]) for e in ev) / mass0,
+        # (None for events resumed from a checkpoint written before the split was logged)
+        "mass_caps_fraction": _event_sum(ev, "caps_mass", mass0),
+        "mass_rounding_fraction": _event_sum(ev, "rounding_mass", mass0),
         "small_pieces": cfg.small_pieces,
         "conserve_mass": cfg.conserve_mass,
         "fragment_radius_floor": cfg.fragment_radius_floor,
@@ -698,6 +699,13 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "regrows": list(settle.regrows) + list(load.regrows) + brk.log,
         "strengths": brk.strengths() if hasattr(brk, "strengths") else {"eps_Pa": brk.eps},
     }
+
+
+def _event_sum(events, key: str, scale: float) -> float | None:
+    """Sum of ``key`` over ``events`` divided by ``scale``; None if an event lacks it."""
+    if any(key not in e for e in events):
+        return None
+    return sum(float(e[key]) for e in events) / scale
 
 
 def figures(load, brk, info, cfg, out_dir: Path) -> list[str]:
