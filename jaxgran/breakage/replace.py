@@ -577,8 +577,8 @@ class _Fragment:
     inertia: float
     area: float  # m^2, of the spheropolygon
     radius: float  # m, sphero-radius
-    # m^2, what the neighbours' erosion took from it: the area its piece would keep with no
-    # neighbour in the way (:meth:`_PieceCut.unobstructed`) minus ``area``
+    # m^2, what the erosion clear of neighbours and walls took from it: the area its piece
+    # would keep with nothing in the way (:meth:`_PieceCut.unobstructed`) minus ``area``
     cap_area: float = 0.0
 
 
@@ -930,7 +930,9 @@ def replace_particles(
     events = {}
     free_iter = iter(free)
     for plan in plans:
-        k, r, _, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged, n_pc = plan
+        k, r, rho_k, delta, frags, fines_mass, m_parent, a_parent, rep, n_clips, n_merged, n_pc = (
+            plan
+        )
         pos_k = arr["pos"][k].copy()
         vel_k = arr["vel"][k].copy()
         om_k = float(arr["omega"][k])
@@ -974,7 +976,7 @@ def replace_particles(
         areas = np.array([f.area for f in frags])
         lost = m_parent - float(masses.sum())
         caps = float(sum(f.cap_area for f in frags))
-        caps_mass = 0.0 if conserve_mass else plan[2] * caps
+        caps_mass = 0.0 if conserve_mass else rho_k * caps
         planes = np.zeros((0, 2, 2)) if rep.planes is None else np.asarray(rep.planes, float)
         event = {
             "kind": "breakage",

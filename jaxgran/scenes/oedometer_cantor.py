@@ -668,8 +668,8 @@ def summarize(settle, load, brk, info, cfg) -> dict:
         "mass_fines_fraction": sum(float(e["fines_mass"]) for e in ev) / mass0,
         "mass_eroded_fraction": sum(float(e["eroded_mass"]) for e in ev) / mass0,
         # the eroded mass split: the erosion clear of the neighbours (paper 000 Fig. 6's
-        # loss) and the rounding of the new corners (jaxgran.breakage.replace)
-        # (None for events resumed from a checkpoint written before the split was logged)
+        # loss) and the rounding of the new corners (jaxgran.breakage.replace); None for
+        # events resumed from a checkpoint written before the split was logged
         "mass_caps_fraction": _event_sum(ev, "caps_mass", mass0),
         "mass_rounding_fraction": _event_sum(ev, "rounding_mass", mass0),
         "small_pieces": cfg.small_pieces,
