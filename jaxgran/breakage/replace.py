@@ -865,7 +865,7 @@ def replace_particles(
         clipped = [c for c, _ in clip_counts]
         n_piece_clips = sum(n for _, n in clip_counts)
         cores = [cut.core(q) for q in clipped]
-        free = cut.unobstructed()
+        unobstructed = cut.unobstructed()
         frags: list[_Fragment] = []
         fines_area = 0.0
         # share of the parent's mass per outline piece (conserve_mass), before clipping
@@ -880,7 +880,7 @@ def replace_particles(
                 continue
             rho_f = m_share / area if conserve_mass else rho
             m, c, inertia = geo.spheropolygon_mass_properties(core, r_f, rho_f)
-            cap = free.kept_area(whole) - area if n_clips or mode == "uniform" else 0.0
+            cap = unobstructed.kept_area(whole) - area if n_clips or mode == "uniform" else 0.0
             frags.append(_Fragment(core - c, c, m, inertia, area, r_f, cap))
         fines_mass = fines_share if conserve_mass else rho * fines_area
         plans.append(
