@@ -40,7 +40,7 @@ import numpy as np
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_erosion import MID  # noqa: E402
-from machine import choices, cpu_name, write_table  # noqa: E402
+from machine import choices, cpu_name, release_compiled, write_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {
@@ -96,6 +96,10 @@ def one(variant: str, seed: int) -> dict:
         "mass_lost_pct": 100.0 * s["mass_lost_fraction"],
         "fines_pct": 100.0 * s["mass_fines_fraction"],
         "eroded_pct": 100.0 * s["mass_eroded_fraction"],
+        # the eroded mass split: caps clipped where a neighbour or a wall overlapped the
+        # parent (paper 000 Fig. 6), and the rounding of the new corners
+        "caps_pct": 100.0 * s["mass_caps_fraction"],
+        "rounding_pct": 100.0 * s["mass_rounding_fraction"],
         "area_lost_pct": 100.0 * s["area_lost_fraction"],
         "area_lost_per_event_pct_of_parent": per_event,
         "bar_force_max_N": s["bar_force_max_N"],
@@ -109,6 +113,15 @@ def one(variant: str, seed: int) -> dict:
 
 def _mean(xs):
     return sum(xs) / len(xs) if xs else float("nan")
+
+
+def _mean_known(xs):
+    """The mean, or None where a row has no value (rows from before the split was logged)."""
+    return None if any(x is None for x in xs) else _mean(xs)
+
+
+def _pct(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
 
 
 def main() -> None:
@@ -140,6 +153,7 @@ def main() -> None:
         for v in variants:
             for s in seeds:
                 r = one(v, s)
+                release_compiled()  # the next run compiles its own shapes
                 r["date"], r["machine"] = today, f"{cpu_name()} ({os.cpu_count()} cores)"
                 print(json.dumps(r), flush=True)
                 rows.append(r)
@@ -169,23 +183,25 @@ def main() -> None:
         "repeats at every segment while the load lasts).",
         "",
         "| variant | seed | events | suppressed | pieces merged | mass lost % | fines % | "
-        "eroded % | area lost % | per event, mean % of parent | bar force max (N) | "
-        "steps | wall (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "eroded % | caps % | rounding % | area lost % | per event, mean % of parent | "
+        "bar force max (N) | steps | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['variant']} | {r['seed']} | {r['n_events']} | {r['n_suppressed']} | "
             f"{r['n_merged']} | {r['mass_lost_pct']:.3f} | {r['fines_pct']:.3f} | "
-            f"{r['eroded_pct']:.3f} | {r['area_lost_pct']:.3f} | "
+            f"{r['eroded_pct']:.3f} | {_pct(r.get('caps_pct'))} | "
+            f"{_pct(r.get('rounding_pct'))} | {r['area_lost_pct']:.3f} | "
             f"{_mean(r['area_lost_per_event_pct_of_parent']):.2f} | "
             f"{r['bar_force_max_N']:.1f} | {r['steps']} | {r['wall_time_s']:.0f} |"
         )
     lines += [
         "",
-        "| variant | runs | events (mean) | mass lost % (mean) | fines % (mean) | area lost % "
-        "(mean) | per event, mean % of parent (all events) |",
-        "|---|---|---|---|---|---|---|",
+        "| variant | runs | events (mean) | mass lost % (mean) | fines % (mean) | caps % "
+        "(mean) | rounding % (mean) | area lost % (mean) | per event, mean % of parent "
+        "(all events) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for v in shown:
         sel = [r for r in rows if r["variant"] == v]
@@ -194,6 +210,8 @@ def main() -> None:
             f"| {v} | {len(sel)} | {_mean([r['n_events'] for r in sel]):.1f} | "
             f"{_mean([r['mass_lost_pct'] for r in sel]):.3f} | "
             f"{_mean([r['fines_pct'] for r in sel]):.3f} | "
+            f"{_pct(_mean_known([r.get('caps_pct') for r in sel]))} | "
+            f"{_pct(_mean_known([r.get('rounding_pct') for r in sel]))} | "
             f"{_mean([r['area_lost_pct'] for r in sel]):.3f} | {_mean(per):.2f} |"
         )
     write_table(args.md, lines)

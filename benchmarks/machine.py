@@ -18,6 +18,21 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def release_compiled() -> None:
+    """Drop every compiled executable of this process (``jax.clear_caches``). A script that
+    runs many scenes one after another compiles new segments for each (capacities differ
+    from run to run), and every executable keeps memory mappings of its machine code: past
+    the kernel's limit of 65,530 per process (vm.max_map_count) the next compilation fails
+    ("LLVM compilation error: Cannot allocate memory") and the process dies (seen on 2
+    cores after 21 runs of `bench_mass_loss.py`, 2026-12-07). Call it between runs."""
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
+
 def save_figure(fig, path) -> None:
     """Lay out, write (creating the folder, 130 dpi) and close a matplotlib figure."""
     from pathlib import Path
