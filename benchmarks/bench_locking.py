@@ -128,8 +128,12 @@ def main() -> None:
         import concurrent.futures
         import multiprocessing
 
-        ctx = multiprocessing.get_context("spawn")  # a fresh JAX in every worker
-        with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=ctx) as pool:
+        # a fresh process (and JAX) for every run, so that no worker piles up compiled code
+        # (see machine.release_compiled)
+        ctx = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(
+            args.jobs, mp_context=ctx, max_tasks_per_child=1
+        ) as pool:
             futures = [pool.submit(one, m, s, sets, pile) for m, s in runs]
             for f in concurrent.futures.as_completed(futures):
                 print(f.result(), flush=True)
