@@ -99,6 +99,12 @@ def one_run(**overrides) -> dict:
         near is not None and near > 1.2 * out["element_share_near_plates"]
     )
     print(json.dumps({k: out[k] for k in ("overrides", "n_particles", "wall_time_s")}), flush=True)
+    # each seed's specimen has its own capacities: drop the compiled code before the next
+    # run, so a long series stays under the kernel's limit of memory mappings
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from machine import release_compiled
+
+    release_compiled()
     return out
 
 
