@@ -99,8 +99,15 @@ def one_run(**overrides) -> dict:
         near is not None and near > 1.2 * out["element_share_near_plates"]
     )
     print(json.dumps({k: out[k] for k in ("overrides", "n_particles", "wall_time_s")}), flush=True)
-    # each seed's specimen has its own capacities: drop the compiled code before the next
-    # run, so a long series stays under the kernel's limit of memory mappings
+    return out
+
+
+def one_seed_run(**overrides) -> dict:
+    """:func:`one_run`, then the compiled code dropped: each seed's specimen has its own
+    capacities, and a long series of seeds in one process would otherwise pass the kernel's
+    limit of memory mappings (``benchmarks/machine.py``). The speed part keeps its compiled
+    code, so that its repeats of one specimen time the warm runs."""
+    out = one_run(**overrides)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from machine import release_compiled
 
@@ -142,7 +149,7 @@ def seeds(args) -> dict:
     if args.size is not None:
         over["d_min"], over["d_max"] = SIZES[args.size]
     first = args.first_seed
-    runs = [one_run(seed=s, **over) for s in range(first, first + args.seeds)]
+    runs = [one_seed_run(seed=s, **over) for s in range(first, first + args.seeds)]
     return {
         "size": args.size or "default",
         "particles": args.particles,
@@ -155,7 +162,7 @@ def resolution(args) -> dict:
     out = {}
     for k, (name, (d0, d1)) in enumerate(SIZES.items()):
         n = args.seeds if k < len(SIZES) - 1 else min(args.seeds, args.finest_seeds)
-        runs = [one_run(seed=s, particles="discs", d_min=d0, d_max=d1) for s in range(n)]
+        runs = [one_seed_run(seed=s, particles="discs", d_min=d0, d_max=d1) for s in range(n)]
         out[name] = {"runs": runs, "summary": summarise(runs)}
     _figure(out, DOCS / "plate_contact_resolution.png")
     return out
